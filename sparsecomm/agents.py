@@ -1,0 +1,128 @@
+"""Networks: a recurrent actor per agent and a centralised critic (SPEC section 5).
+
+The actor of agent i reads its observation and the messages it received at the previous step,
+updates a GRU state, and outputs action logits and the signal ``z^{i->j}`` in [0, 1]^C for every
+recipient j != i. By default each agent has its own parameters: they are stacked on a leading
+agent axis and applied with ``vmap`` (one batched matmul per layer for the whole team).
+"""
+
+from __future__ import annotations
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+from sparsecomm.configs import AgentConfig
+
+
+def orthogonal(scale: float = 1.0, iterations: int = 60):
+    """Initializer for a Haar-random orthogonal matrix without LAPACK.
+
+    The polar factor of a Gaussian matrix is Haar-distributed (what ``nn.initializers.orthogonal``
+    draws via QR). We compute it with the Newton-Schulz iteration ``X <- X (3I - X^T X) / 2``,
+    matmuls only. Reason: batched QR custom calls under ``vmap`` (seeds x agents) intermittently
+    deadlocked XLA's CPU runtime (jax 0.10.2), see docs/notes.md.
+    """
+
+    def init(key, shape, dtype=jnp.float32):
+        rows, cols = shape[-2], shape[-1]
+        tall = rows >= cols
+        a = jax.random.normal(key, shape if tall else (*shape[:-2], cols, rows), jnp.float32)
+        a = a / jnp.linalg.norm(a, axis=(-2, -1), keepdims=True)  # singular values in (0, 1]
+
+        def step(x, _):
+            return 1.5 * x - 0.5 * x @ (jnp.swapaxes(x, -1, -2) @ x), None
+
+        q, _ = jax.lax.scan(step, a, None, length=iterations)
+        if not tall:
+            q = jnp.swapaxes(q, -1, -2)
+        return (scale * q).astype(dtype)
+
+    return init
+
+
+class Actor(nn.Module):
+    """One agent's recurrent policy with an action head and a message head."""
+
+    hidden: int
+    gru: int
+    num_actions: int
+    num_recipients: int
+    num_elements: int
+
+    @nn.compact
+    def __call__(self, carry: jax.Array, x: jax.Array):
+        h = nn.relu(nn.Dense(self.hidden)(x))
+        h = nn.relu(nn.Dense(self.hidden)(h))
+        carry, h = nn.GRUCell(self.gru, recurrent_kernel_init=orthogonal())(carry, h)
+        logits = nn.Dense(self.num_actions)(h)
+        z = nn.sigmoid(nn.Dense(self.num_recipients * self.num_elements)(h))
+        z = z.reshape(*z.shape[:-1], self.num_recipients, self.num_elements)
+        return carry, logits, z
+
+
+class Critic(nn.Module):
+    """Centralised value function: full state -> one value per agent."""
+
+    hidden: int
+    num_agents: int
+
+    @nn.compact
+    def __call__(self, s: jax.Array) -> jax.Array:
+        h = nn.relu(nn.Dense(self.hidden)(s))
+        h = nn.relu(nn.Dense(self.hidden)(h))
+        return nn.Dense(self.num_agents)(h)
+
+
+class Team:
+    """The K actors (separate or shared parameters) and the critic, as pure functions."""
+
+    def __init__(
+        self,
+        cfg: AgentConfig,
+        num_agents: int,
+        obs_dim: int,
+        num_actions: int,
+        num_elements: int,
+        state_dim: int,
+    ):
+        self.cfg = cfg
+        self.num_agents = num_agents
+        self.num_actions = num_actions
+        self.msg_in = (num_agents - 1) * num_elements
+        self.in_dim = obs_dim + self.msg_in + (num_agents if cfg.share_params else 0)
+        self.state_dim = state_dim
+        self.actor = Actor(cfg.hidden, cfg.gru, num_actions, num_agents - 1, num_elements)
+        self.critic = Critic(cfg.critic_hidden, num_agents)
+
+    def init(self, key: jax.Array) -> dict:
+        k_actor, k_critic = jax.random.split(key)
+        carry = jnp.zeros((1, self.cfg.gru))
+        x = jnp.zeros((1, self.in_dim))
+        if self.cfg.share_params:
+            actor = self.actor.init(k_actor, carry, x)
+        else:
+            keys = jax.random.split(k_actor, self.num_agents)
+            actor = jax.vmap(lambda k: self.actor.init(k, carry, x))(keys)
+        critic = self.critic.init(k_critic, jnp.zeros((1, self.state_dim)))
+        return {"actor": actor, "critic": critic}
+
+    def initial_carry(self, batch: int) -> jax.Array:
+        return jnp.zeros((batch, self.num_agents, self.cfg.gru))
+
+    def act(self, actor_params, carry: jax.Array, obs: jax.Array, msgs: jax.Array):
+        """One step of every actor.
+
+        Args: ``carry`` (B, K, H); ``obs`` (B, K, obs_dim); ``msgs`` (B, K, (K-1) C) decoded
+        messages received at the previous step. Returns ``(carry, logits (B, K, A),
+        z (B, K, K-1, C))``.
+        """
+        x = jnp.concatenate([obs, msgs], axis=-1)
+        if self.cfg.share_params:
+            ids = jnp.broadcast_to(jnp.eye(self.num_agents), (*x.shape[:-1], self.num_agents))
+            return self.actor.apply(actor_params, carry, jnp.concatenate([x, ids], axis=-1))
+        return jax.vmap(self.actor.apply, in_axes=(0, 1, 1), out_axes=1)(actor_params, carry, x)
+
+    def value(self, critic_params, state: jax.Array) -> jax.Array:
+        """(..., state_dim) -> (..., K) values."""
+        return self.critic.apply(critic_params, state)

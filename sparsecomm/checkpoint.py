@@ -1,0 +1,65 @@
+"""Checkpoints without pickle: msgpack for arrays (``flax.serialization``), JSON for configs.
+
+A checkpoint folder holds ``state.msgpack`` (the batched train state of every run of a sweep) and
+``config.json`` (the configuration and the sweep axes). Loading executes no code from the file.
+Writes are atomic (temporary file, then rename), so a run killed mid-write keeps the previous
+checkpoint.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import jax
+import numpy as np
+from flax import serialization
+
+
+def _is_key(x) -> bool:
+    return isinstance(x, jax.Array) and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "wb") as f:
+        f.write(data)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def save(folder: str | os.PathLike, state, meta: dict) -> None:
+    """Save a pytree ``state`` (PRNG keys stored as their raw data) and JSON ``meta``."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    raw = jax.tree.map(lambda x: jax.random.key_data(x) if _is_key(x) else x, state)
+    raw = jax.tree.map(np.asarray, raw)
+    _atomic_write(folder / "state.msgpack", serialization.to_bytes(raw))
+    _atomic_write(folder / "config.json", json.dumps(meta, indent=2).encode())
+
+
+def load_meta(folder: str | os.PathLike) -> dict:
+    path = Path(folder) / "config.json"
+    if not path.exists():
+        raise FileNotFoundError(f"no checkpoint in {folder} (missing {path.name})")
+    return json.loads(path.read_text())
+
+
+def load(folder: str | os.PathLike, template):
+    """Restore a state saved by :func:`save` into the structure of ``template``."""
+    path = Path(folder) / "state.msgpack"
+    if not path.exists():
+        raise FileNotFoundError(f"no checkpoint in {folder} (missing {path.name})")
+    raw_template = jax.tree.map(lambda x: jax.random.key_data(x) if _is_key(x) else x, template)
+    raw = serialization.from_bytes(raw_template, path.read_bytes())
+    return jax.tree.map(
+        lambda t, r: jax.random.wrap_key_data(r) if _is_key(t) else jax.numpy.asarray(r),
+        template,
+        raw,
+    )
+
+
+def exists(folder: str | os.PathLike) -> bool:
+    return (Path(folder) / "state.msgpack").exists()

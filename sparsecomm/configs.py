@@ -1,0 +1,152 @@
+"""Typed configurations. Every field documents where its default comes from.
+
+``paper``: stated in the paper (``../shared/paper.md``); ``SPEC``: pinned by SPEC.md, often from
+its calibration run; ``ours``: chosen here, by measurement where a number is given.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from sparsecomm.channel import CODE_NAMES, Code
+from sparsecomm.envs.navigation import NavConfig
+
+CHANNEL_MODES = ("discrete", "continuous", "off")
+
+
+def _bad(owner: str, name: str, value, allowed: str) -> ValueError:
+    return ValueError(f"{owner}.{name} must be {allowed}, got {value!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class ChannelConfig:
+    """The message channel between agents (SPEC sections 1-3)."""
+
+    mode: str = "discrete"
+    """``discrete``: dithered quantization, the paper's method. ``continuous``: real-valued
+    messages sent as float32 (a baseline, 32 bits per element). ``off``: no communication
+    (messages are zeros, 0 bits; a baseline)."""
+    levels: int = 15
+    """|M|, symbols per element are {0, ..., levels}. SPEC section 1."""
+    num_elements: int = 10
+    """C, elements of the signal z each agent sends to each recipient per step. Paper: 10."""
+    code: str = "paper"
+    """Code used to count payload bits (and frame them on the wire) for ``discrete`` mode:
+    ``paper`` (the paper's variable-length code, Elias-gamma framing) or ``fixed`` (fixed-width,
+    a baseline). SPEC section 2."""
+
+    def __post_init__(self):
+        if self.mode not in CHANNEL_MODES:
+            raise _bad("ChannelConfig", "mode", self.mode, f"one of {CHANNEL_MODES}")
+        if not isinstance(self.levels, int) or isinstance(self.levels, bool) or self.levels < 1:
+            raise _bad("ChannelConfig", "levels", self.levels, "an integer >= 1")
+        if not isinstance(self.num_elements, int) or self.num_elements < 1:
+            raise _bad("ChannelConfig", "num_elements", self.num_elements, "an integer >= 1")
+        if self.code not in CODE_NAMES[:2]:
+            raise _bad("ChannelConfig", "code", self.code, f"one of {CODE_NAMES[:2]}")
+
+    @property
+    def code_obj(self) -> Code:
+        return Code("float32" if self.mode == "continuous" else self.code, self.levels)
+
+
+@dataclasses.dataclass(frozen=True)
+class AgentConfig:
+    """Networks: a recurrent actor per agent and a centralised critic (SPEC section 5)."""
+
+    hidden: int = 64
+    """Width of the actor's two dense layers before the GRU. SPEC calibration: 64."""
+    gru: int = 64
+    """GRU state size of the actor. SPEC calibration: 64."""
+    critic_hidden: int = 128
+    """Width of the critic's two hidden layers. SPEC calibration: 128."""
+    share_params: bool = False
+    """One set of actor parameters for all agents (with a one-hot agent id appended to the
+    input). Paper/SPEC: separate parameters per agent (False)."""
+
+    def __post_init__(self):
+        for name in ("hidden", "gru", "critic_hidden"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 1:
+                raise _bad("AgentConfig", name, v, "an integer >= 1")
+
+
+@dataclasses.dataclass(frozen=True)
+class RLConfig:
+    """Actor-critic training through the channel (paper eq. 5, SPEC section 5)."""
+
+    env: NavConfig = NavConfig()
+    """The navigation task."""
+    channel: ChannelConfig = ChannelConfig()
+    """The channel."""
+    agent: AgentConfig = AgentConfig()
+    """The networks."""
+    num_envs: int = 256
+    """Episodes of ``env.max_steps`` steps collected per update. ours, by the tuning in
+    docs/tuning.md (SPEC calibration: 64)."""
+    num_updates: int = 1000
+    """Number of gradient updates. ours."""
+    lr: float = 1e-3
+    """Adam learning rate. ours, docs/tuning.md (SPEC calibration: 3e-4)."""
+    max_grad_norm: float = 1.0
+    """Global-norm gradient clipping, applied to the actors and the critic separately. SPEC
+    calibration: 1.0 (one norm for both)."""
+    gamma: float = 0.95
+    """Discount. ours, docs/tuning.md (SPEC calibration: 0.99). With 0.99 an agent hovering in
+    its goal radius (+250 a step) is worth more than the one-off success bonus (1200), and
+    learning repeatedly found and lost success."""
+    gae_lambda: float = 1.0
+    """GAE lambda; 1.0 gives the paper's Monte-Carlo returns minus the critic (eq. 5)."""
+    ent_coef: float = 0.01
+    """Entropy bonus weight. ours, docs/tuning.md (SPEC calibration: none)."""
+    vf_coef: float = 0.5
+    """Weight of the critic's squared-error loss. ours."""
+    reward_scale: float = 0.01
+    """Rewards are multiplied by this for learning (logs stay in the paper's units). SPEC
+    calibration: 1/100."""
+    remat: bool = False
+    """Rematerialise each step of the episode in the backward pass (``jax.checkpoint``): less
+    memory, more compute. ours."""
+    seed: int = 0
+    """Base PRNG seed; seed s of a sweep uses ``seed + s``."""
+
+    def __post_init__(self):
+        checks = {
+            "num_envs": (self.num_envs >= 1, ">= 1"),
+            "num_updates": (self.num_updates >= 0, ">= 0"),
+            "lr": (self.lr > 0, "> 0"),
+            "max_grad_norm": (self.max_grad_norm > 0, "> 0"),
+            "gamma": (0 <= self.gamma <= 1, "in [0, 1]"),
+            "gae_lambda": (0 <= self.gae_lambda <= 1, "in [0, 1]"),
+            "ent_coef": (self.ent_coef >= 0, ">= 0"),
+            "vf_coef": (self.vf_coef >= 0, ">= 0"),
+            "reward_scale": (self.reward_scale > 0, "> 0"),
+        }
+        for name, (ok, allowed) in checks.items():
+            if not ok:
+                raise _bad("RLConfig", name, getattr(self, name), allowed)
+
+
+def to_dict(config) -> dict:
+    """A config as plain JSON-able data (nested dataclasses become dicts)."""
+    return dataclasses.asdict(config)
+
+
+def from_dict(cls, data: dict):
+    """Rebuild a (nested) config dataclass from :func:`to_dict` output; unknown keys raise."""
+    import typing
+
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(data) - names
+    if unknown:
+        raise ValueError(f"{cls.__name__} has no field(s) {sorted(unknown)}")
+    kwargs = {}
+    for name, value in data.items():
+        hint = hints[name]
+        if dataclasses.is_dataclass(hint) and isinstance(value, dict):
+            value = from_dict(hint, value)
+        elif isinstance(value, list):
+            value = tuple(value)
+        kwargs[name] = value
+    return cls(**kwargs)

@@ -1,0 +1,180 @@
+"""Actor-critic reinforcement learning through the channel (paper eq. 5, SPEC section 5).
+
+Each update plays ``num_envs`` whole episodes with :func:`sparsecomm.rollout.rollout` and takes
+one gradient step on
+
+    loss = mean over valid steps of  sum_i [ -log pi_i(a_t | o_<=t) * A_i,t
+                                             + vf_coef * (V_i(S_t) - G_i,t)^2
+                                             - ent_coef * H(pi_i) ]
+                                     + lam * sum_{i, j != i, c} log2(|M| z_t^{i->j}[c] + 1)
+
+with ``G`` the Monte-Carlo returns of the scaled rewards (``gae_lambda = 1``, paper eq. 5) or GAE
+targets, and ``A = G - V(S_t)`` held constant. The gradient of the whole expression is taken
+through the episode: through every agent's GRU and through the channel from every receiver's
+log-probabilities into every sender's parameters.
+
+``make_train(config)`` returns pure functions. ``train(key, lam)`` runs the whole loop as one
+compiled program, so ``vmap`` over seeds and lambdas gives a sweep for free; ``init`` and
+``update_chunk`` split it into resumable pieces for the CLI (checkpoints, progress, logs).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from sparsecomm.agents import Team
+from sparsecomm.configs import RLConfig
+from sparsecomm.envs.navigation import NavigationEnv
+from sparsecomm.rollout import Trajectory, episode_metrics, rollout
+
+
+class TrainState(struct.PyTreeNode):
+    """Everything a run needs to continue exactly: parameters, optimiser, PRNG, counters."""
+
+    params: dict
+    opt_state: optax.OptState
+    key: jax.Array
+    update: jax.Array  # () int32, updates done
+    lam: jax.Array  # () float32, this run's bit-penalty weight
+
+
+def discounted_targets(rewards, values, dones, valid, gamma, gae_lambda):
+    """Advantages and value targets, (T, B, K), by a backward scan over time.
+
+    ``rewards`` are zero on invalid steps; ``dones`` marks the last step of an episode, where
+    nothing is bootstrapped (the 256-step limit is part of the state the critic sees).
+    With ``gae_lambda = 1`` the targets are Monte-Carlo returns.
+    """
+    not_done = 1.0 - dones.astype(jnp.float32)[..., None]
+    valid = valid.astype(jnp.float32)[..., None]
+    next_values = jnp.concatenate([values[1:], jnp.zeros_like(values[:1])], 0)
+
+    def back(adv_next, x):
+        r, v, v_next, nd, ok = x
+        delta = r + gamma * nd * v_next - v
+        adv = (delta + gamma * gae_lambda * nd * adv_next) * ok
+        return adv, adv
+
+    _, adv = jax.lax.scan(
+        back,
+        jnp.zeros_like(values[0]),
+        (rewards, values, next_values, not_done, valid),
+        reverse=True,
+    )
+    return adv, adv + values
+
+
+@dataclasses.dataclass(frozen=True)
+class Trainer:
+    """The pure functions of one configuration (see the module docstring)."""
+
+    config: RLConfig
+    env: NavigationEnv
+    team: Team
+    tx: optax.GradientTransformation
+    init: Callable
+    update: Callable
+    update_chunk: Callable
+    train: Callable
+    evaluate: Callable
+
+
+def make_team(config) -> tuple[NavigationEnv, Team]:
+    env = NavigationEnv(config.env)
+    team = Team(
+        config.agent,
+        env.num_agents,
+        env.obs_dim,
+        env.num_actions,
+        config.channel.num_elements,
+        env.state_dim,
+    )
+    return env, team
+
+
+def make_train(config: RLConfig) -> Trainer:
+    env, team = make_team(config)
+    tx = optax.adam(config.lr)
+    clip = optax.clip_by_global_norm(config.max_grad_norm)
+
+    def clip_parts(grads):
+        """Clip the actors' and the critic's gradients separately: the critic's squared errors
+        on returns of a few hundred (scaled) units would otherwise dominate one global norm and
+        starve the actors."""
+        return {k: clip.update(g, clip.init(g))[0] for k, g in grads.items()}
+
+    def init(key: jax.Array, lam) -> TrainState:
+        k_params, k_run = jax.random.split(key)
+        params = team.init(k_params)
+        return TrainState(
+            params, tx.init(params), k_run, jnp.zeros((), jnp.int32), jnp.asarray(lam, jnp.float32)
+        )
+
+    def loss_fn(params, key, lam):
+        traj: Trajectory = rollout(
+            team, env, config.channel, params["actor"], key, config.num_envs, remat=config.remat
+        )
+        valid = traj.valid.astype(jnp.float32)
+        values = team.value(params["critic"], traj.states)
+        rewards = traj.rewards * config.reward_scale * valid[..., None]
+        adv, targets = discounted_targets(
+            rewards,
+            jax.lax.stop_gradient(values),
+            traj.dones,
+            traj.valid,
+            config.gamma,
+            config.gae_lambda,
+        )
+        logp = jnp.take_along_axis(traj.log_probs, traj.actions[..., None], -1)[..., 0]
+        entropy = -(jnp.exp(traj.log_probs) * traj.log_probs).sum(-1)
+        pg = -(logp * jax.lax.stop_gradient(adv)).sum(-1)
+        value_loss = jnp.square(values - jax.lax.stop_gradient(targets)).sum(-1)
+        steps = valid.sum()
+
+        def mean(x):
+            return (x * valid).sum() / steps
+
+        loss = (
+            mean(pg)
+            + config.vf_coef * mean(value_loss)
+            - config.ent_coef * mean(entropy.sum(-1))
+            + lam * mean(traj.penalty)
+        )
+        metrics = episode_metrics(traj)
+        metrics.update(
+            loss=loss,
+            policy_loss=mean(pg),
+            value_loss=mean(value_loss),
+            entropy=mean(entropy.mean(-1)),
+        )
+        return loss, metrics
+
+    def update(state: TrainState):
+        key, k_roll = jax.random.split(state.key)
+        grads, metrics = jax.grad(loss_fn, has_aux=True)(state.params, k_roll, state.lam)
+        updates, opt_state = tx.update(clip_parts(grads), state.opt_state, state.params)
+        params = optax.apply_updates(state.params, updates)
+        metrics["actor_grad_norm"] = optax.tree.norm(grads["actor"])
+        metrics["critic_grad_norm"] = optax.tree.norm(grads["critic"])
+        new = TrainState(params, opt_state, key, state.update + 1, state.lam)
+        return new, metrics
+
+    def update_chunk(state: TrainState, num_updates: int):
+        """``num_updates`` updates in one ``lax.scan``; metrics stacked on a leading axis."""
+        return jax.lax.scan(lambda s, _: update(s), state, None, length=num_updates)
+
+    def train(key: jax.Array, lam) -> tuple[TrainState, dict]:
+        """The whole run, pure: vmap it over keys and lambdas for a sweep."""
+        return update_chunk(init(key, lam), config.num_updates)
+
+    def evaluate(actor_params, key: jax.Array, num_episodes: int, greedy: bool = False):
+        traj = rollout(team, env, config.channel, actor_params, key, num_episodes, greedy=greedy)
+        return episode_metrics(traj)
+
+    return Trainer(config, env, team, tx, init, update, update_chunk, train, evaluate)

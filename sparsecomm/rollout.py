@@ -1,0 +1,211 @@
+"""The one rollout: environment, actors and channel in a single ``lax.scan``.
+
+It serves reinforcement learning (the learners act), imitation (an expert acts, or the learners
+act and an expert labels: DAgger) and evaluation. Each batch element is one whole episode of
+``env.max_steps`` steps; steps after the episode ended are computed but masked (``valid``).
+
+At step t every agent i reads its observation and the messages decoded at step t-1, and emits
+``z^{i->j}`` for every j != i. The channel quantizes each link with the dither key
+``dither_key(episode_channel_key, t, i, j)`` and the reconstructions become the received messages
+of step t+1. Everything stays differentiable with respect to the actors' parameters: a
+receiver's log-probabilities at t+1 depend on the senders' parameters through ``z_hat``, and on
+all earlier steps through the GRU states (backpropagation through the episode).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from sparsecomm import channel
+from sparsecomm.agents import Team
+from sparsecomm.configs import ChannelConfig
+from sparsecomm.envs.navigation import NavigationEnv
+
+
+@struct.dataclass
+class Expert:
+    """An action source that may label or drive episodes (imitation, DAgger).
+
+    ``init(batch) -> carry`` and ``step(carry, key, env_state, obs) -> (carry, actions)`` where
+    ``env_state`` is the batched :class:`NavState` (a centralised expert may read every goal),
+    ``obs`` the (B, K, obs_dim) observations, and actions (B, K) int32.
+    """
+
+    init: Callable[[int], Any] = struct.field(pytree_node=False)
+    step: Callable = struct.field(pytree_node=False)
+
+
+@struct.dataclass
+class Trajectory:
+    """Per-step records, leading axes (T, B)."""
+
+    log_probs: jax.Array  # (T, B, K, A) log pi(. | o_<=t), differentiable
+    actions: jax.Array  # (T, B, K) actions executed
+    expert_actions: jax.Array  # (T, B, K) expert labels (-1 when there is no expert)
+    rewards: jax.Array  # (T, B, K) in the paper's units
+    states: jax.Array  # (T, B, state_dim) global state before the step (critic input)
+    valid: jax.Array  # (T, B) the step belongs to the episode
+    dones: jax.Array  # (T, B) the episode ended at this step
+    success: jax.Array  # (T, B) all agents at their goals after this step
+    penalty: jax.Array  # (T, B) surrogate bit penalty, summed over links and elements
+    payload_bits: jax.Array  # (T, B) real payload bits sent by the team
+    wire_bits: jax.Array  # (T, B) bits on the wire, framing included
+    link_bits: jax.Array  # (T, B, K, K) payload bits sent i -> j (zero diagonal)
+    env_states: Any = None  # batched NavState per step (only when ``keep_states``)
+
+
+def link_tables(num_agents: int) -> tuple[np.ndarray, np.ndarray]:
+    """Static routing tables ``(sender, slot)``, each (K, K-1).
+
+    Receiver j's s-th incoming link comes from ``sender[j, s]`` (the other agents in increasing
+    order), which wrote it into output slot ``slot[j, s]`` of its message head (the slot of
+    recipient j among the sender's K-1 recipients).
+    """
+    sender = np.array([[i for i in range(num_agents) if i != j] for j in range(num_agents)])
+    slot = np.where(
+        np.arange(num_agents)[:, None] > sender,
+        np.arange(num_agents)[:, None] - 1,
+        np.arange(num_agents)[:, None],
+    )
+    return sender.reshape(num_agents, num_agents - 1), slot.reshape(num_agents, num_agents - 1)
+
+
+def recipients(num_agents: int) -> np.ndarray:
+    """(K, K-1): the recipient of sender i's output slot r."""
+    return np.array([[j for j in range(num_agents) if j != i] for i in range(num_agents)])
+
+
+def transmit(cfg: ChannelConfig, keys: jax.Array, t: jax.Array, z: jax.Array):
+    """Send every link of a batch through the channel.
+
+    ``keys`` (B,) episode channel keys; ``z`` (B, K, K-1, C). Returns ``(z_hat, penalty (B,),
+    payload (B,), wire (B,), link_payload (B, K, K-1))``.
+    """
+    b, k, r, c = z.shape
+    zeros_b = jnp.zeros((b,), jnp.float32)
+    if cfg.mode == "off":
+        z0 = jnp.zeros_like(z)
+        return z0, zeros_b, zeros_b, zeros_b, jnp.zeros((b, k, r), jnp.float32)
+    if cfg.mode == "continuous":
+        link = jnp.full((b, k, r), 32.0 * c)
+        total = jnp.full((b,), 32.0 * c * k * r)
+        return z, zeros_b, total, total, link
+    recv = jnp.asarray(recipients(k))
+    senders = jnp.arange(k)
+
+    def one_link(key, i, j, z_link):
+        return channel.quantize(channel.dither_key(key, t, i, j), z_link, cfg.levels)
+
+    per_link = jax.vmap(jax.vmap(one_link, (None, None, 0, 0)), (None, 0, 0, 0))
+    m, z_hat = jax.vmap(per_link, (0, None, None, 0))(keys, senders, recv, z)
+    code = cfg.code_obj
+    link = channel.payload_bits(m, code).sum(-1).astype(jnp.float32)
+    wire = channel.wire_bits(m, code).sum((-3, -2, -1)).astype(jnp.float32)
+    penalty = channel.bit_penalty(z, cfg.levels).sum((-3, -2, -1))
+    return z_hat, penalty, link.sum((-2, -1)), wire, link
+
+
+def rollout(
+    team: Team,
+    env: NavigationEnv,
+    channel_cfg: ChannelConfig,
+    actor_params,
+    key: jax.Array,
+    num_envs: int,
+    *,
+    expert: Expert | None = None,
+    beta: jax.Array | float = 0.0,
+    greedy: bool = False,
+    remat: bool = False,
+    keep_states: bool = False,
+) -> Trajectory:
+    """Play ``num_envs`` whole episodes.
+
+    Args:
+      team, env, channel_cfg: the actors, the task and the channel.
+      actor_params: the actors' parameters (gradients flow back into them).
+      key: PRNG key of the whole batch.
+      num_envs: batch of parallel episodes.
+      expert: optional :class:`Expert` that labels every step (``expert_actions``).
+      beta: probability that the expert's action is executed instead of the learners' (1:
+        behaviour cloning, the expert drives; 0: the learners drive; between: DAgger mixing).
+      greedy: learners take their most probable action instead of sampling.
+      remat: recompute each step in the backward pass (``jax.checkpoint``) to save memory.
+      keep_states: also return the environment states (for rendering and tests).
+    """
+    k = env.num_agents
+    sender, slot = (jnp.asarray(a) for a in link_tables(k))
+    k_reset, k_chan, k_steps = jax.random.split(key, 3)
+    obs, state = jax.vmap(env.reset)(jax.random.split(k_reset, num_envs))
+    chan_keys = jax.random.split(k_chan, num_envs)
+    c = channel_cfg.num_elements
+    msgs = jnp.zeros((num_envs, k, (k - 1) * c), jnp.float32)
+    carry = team.initial_carry(num_envs)
+    expert_carry = expert.init(num_envs) if expert is not None else None
+
+    def step(loop, t):
+        state, obs, msgs, carry, expert_carry = loop
+        k_act, k_env, k_exp, k_mix = jax.random.split(jax.random.fold_in(k_steps, t), 4)
+        carry, logits, z = team.act(actor_params, carry, obs, msgs)
+        log_probs = jax.nn.log_softmax(logits)
+        if greedy:
+            actions = jnp.argmax(logits, -1)
+        else:
+            actions = jax.random.categorical(k_act, jax.lax.stop_gradient(logits))
+        if expert is not None:
+            expert_carry, expert_actions = expert.step(expert_carry, k_exp, state, obs)
+            use_expert = jax.random.uniform(k_mix, (num_envs, 1)) < beta
+            actions = jnp.where(use_expert, expert_actions, actions)
+        else:
+            expert_actions = jnp.full(actions.shape, -1)
+        z_hat, penalty, payload, wire, link = transmit(channel_cfg, chan_keys, t, z)
+        next_msgs = z_hat[:, sender, slot].reshape(num_envs, k, (k - 1) * c)
+        global_state = jax.vmap(env.global_state)(state)
+        valid = ~state.done
+        next_obs, next_state, rewards, dones, info = jax.vmap(env.step)(
+            jax.random.split(k_env, num_envs), state, actions
+        )
+        full_link = jnp.zeros((num_envs, k, k), jnp.float32)
+        full_link = full_link.at[:, jnp.arange(k)[:, None], jnp.asarray(recipients(k))].set(link)
+        record = Trajectory(
+            log_probs=log_probs,
+            actions=actions.astype(jnp.int32),
+            expert_actions=expert_actions.astype(jnp.int32),
+            rewards=rewards,
+            states=global_state,
+            valid=valid,
+            dones=dones[:, 0] & valid,
+            success=info["success"] & valid,
+            penalty=penalty,
+            payload_bits=payload,
+            wire_bits=wire,
+            link_bits=full_link,
+            env_states=state if keep_states else None,
+        )
+        return (next_state, next_obs, next_msgs, carry, expert_carry), record
+
+    if remat:
+        step = jax.checkpoint(step)
+    init = (state, obs, msgs, carry, expert_carry)
+    _, traj = jax.lax.scan(step, init, jnp.arange(env.config.max_steps))
+    return traj
+
+
+def episode_metrics(traj: Trajectory) -> dict[str, jax.Array]:
+    """Batch means of the SPEC section 6 metrics (rewards in the paper's units)."""
+    valid = traj.valid.astype(jnp.float32)
+    steps = valid.sum()
+    return {
+        "group_reward": (traj.rewards.sum(-1) * valid).sum(0).mean(),
+        "episode_length": valid.sum(0).mean(),
+        "success_rate": traj.success.any(0).astype(jnp.float32).mean(),
+        "bits_per_step": (traj.payload_bits * valid).sum() / steps,
+        "wire_bits_per_step": (traj.wire_bits * valid).sum() / steps,
+        "penalty": (traj.penalty * valid).sum() / steps,
+    }

@@ -1,0 +1,202 @@
+"""Seeds x lambdas as one vmapped program, with progress, logs and resumable checkpoints.
+
+Every learner (RL, imitation) exposes ``init(key, lam) -> state`` and
+``update_chunk(state, n) -> (state, metrics stacked over n updates)``. :func:`run_sweep` vmaps
+them over the flattened grid of (lambda, seed) runs, advances all runs together chunk by chunk,
+and after each chunk appends one CSV row per run and update, writes TensorBoard scalars, updates
+the progress bar, and every ``checkpoint_every`` chunks saves the whole batched state. A run that
+dies resumes from its last checkpoint and ends with the same parameters as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import functools
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from tqdm import tqdm
+
+from sparsecomm import checkpoint
+from sparsecomm.configs import to_dict
+
+FIRST_COLUMNS = ["seed", "lam", "update", "env_steps", "episodes"]
+METRIC_ORDER = [
+    "group_reward",
+    "episode_length",
+    "success_rate",
+    "bits_per_step",
+    "wire_bits_per_step",
+    "penalty",
+]
+
+
+@dataclasses.dataclass(frozen=True)
+class SweepSpec:
+    """The runs of a sweep: every lambda with every seed."""
+
+    seeds: int = 1
+    """Number of seeds per lambda (seed s uses ``config.seed + s``)."""
+    lams: tuple[float, ...] = (0.0,)
+    """Bit-penalty weights to sweep."""
+
+    def __post_init__(self):
+        if self.seeds < 1:
+            raise ValueError(f"seeds must be >= 1, got {self.seeds}")
+        if not self.lams or any(not np.isfinite(x) or x < 0 for x in self.lams):
+            raise ValueError(f"lams must be non-empty, finite and >= 0, got {self.lams}")
+
+    def runs(self) -> list[tuple[int, float]]:
+        return [(s, float(lam)) for lam in self.lams for s in range(self.seeds)]
+
+
+def _row_metrics(metrics: dict) -> list[str]:
+    rest = sorted(k for k in metrics if k not in METRIC_ORDER)
+    return [k for k in METRIC_ORDER if k in metrics] + rest
+
+
+def _truncate_csv(path: Path, max_update: int) -> None:
+    """Drop rows logged after the checkpoint we resume from (they will be logged again)."""
+    if not path.exists():
+        return
+    with open(path, newline="") as f:
+        rows = list(csv.reader(f))
+    if not rows:
+        return
+    col = rows[0].index("update")
+    keep = [rows[0]] + [r for r in rows[1:] if int(r[col]) <= max_update]
+    with open(path, "w", newline="") as f:
+        csv.writer(f).writerows(keep)
+
+
+@functools.lru_cache(maxsize=16)
+def _compiled(learner):
+    """The learner's vmapped, jitted ``init`` and ``update_chunk`` (compiled once per learner)."""
+    init = jax.jit(jax.vmap(learner.init))
+    steps = jax.jit(jax.vmap(learner.update_chunk, (0, None)), static_argnums=1)
+    return init, steps
+
+
+def run_sweep(
+    learner,
+    config,
+    spec: SweepSpec,
+    out: str | Path,
+    *,
+    num_updates: int,
+    episodes_per_update: int,
+    steps_per_episode: int,
+    chunk: int = 10,
+    checkpoint_every: int = 10,
+    resume: bool = True,
+    tensorboard: bool = True,
+    progress: bool = True,
+    kind: str = "train",
+    on_chunk: Callable | None = None,
+):
+    """Run (or resume) a sweep; returns the final batched state and the run list."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    runs = spec.runs()
+    keys = jnp.stack([jax.random.key(config.seed + s) for s, _ in runs])
+    lams = jnp.asarray([lam for _, lam in runs], jnp.float32)
+    init, steps = _compiled(learner)
+    state = init(keys, lams)
+    meta = {
+        "kind": kind,
+        "config": to_dict(config),
+        "seeds": spec.seeds,
+        "lams": list(spec.lams),
+        "num_updates": num_updates,
+        "chunk": chunk,
+    }
+    ckpt = out / "checkpoint"
+    start = 0
+    csv_path = out / "metrics.csv"
+    if resume and checkpoint.exists(ckpt):
+        old = checkpoint.load_meta(ckpt)
+        for field in ("kind", "config", "seeds", "lams", "chunk"):
+            if old.get(field) != meta[field]:
+                raise ValueError(
+                    f"cannot resume from {ckpt}: its {field} differs from this run's "
+                    f"(use a new --out folder or --no-resume)"
+                )
+        state = checkpoint.load(ckpt, state)
+        start = int(np.asarray(state.update).max())
+        _truncate_csv(csv_path, start)
+    elif csv_path.exists():
+        csv_path.unlink()
+
+    writer = None
+    if tensorboard:
+        from tensorboardX import SummaryWriter
+
+        writer = SummaryWriter(str(out / "tensorboard"))
+    bar = tqdm(
+        total=num_updates,
+        initial=start,
+        disable=not progress,
+        unit="upd",
+        desc=f"{kind} {len(runs)} run(s)",
+        dynamic_ncols=True,
+    )
+    header_written = csv_path.exists() and start > 0
+    t0 = time.time()
+    done, chunks = start, 0
+    with open(csv_path, "a", newline="") as f:
+        w = csv.writer(f)
+        while done < num_updates:
+            n = min(chunk, num_updates - done)
+            state, metrics = steps(state, n)
+            metrics = {k: np.asarray(v) for k, v in metrics.items()}  # (runs, n)
+            names = _row_metrics(metrics)
+            if not header_written:
+                w.writerow(FIRST_COLUMNS + names)
+                header_written = True
+            for u in range(n):
+                upd = done + u + 1
+                for r, (seed, lam) in enumerate(runs):
+                    w.writerow(
+                        [
+                            seed,
+                            lam,
+                            upd,
+                            upd * episodes_per_update * steps_per_episode,
+                            upd * episodes_per_update,
+                        ]
+                        + [f"{metrics[k][r, u]:.6g}" for k in names]
+                    )
+                if writer is not None:
+                    for r, (seed, lam) in enumerate(runs):
+                        for k in names:
+                            writer.add_scalar(
+                                f"lam={lam:g}/seed={seed}/{k}",
+                                metrics[k][r, u],
+                                upd * episodes_per_update * steps_per_episode,
+                            )
+            f.flush()
+            done += n
+            chunks += 1
+            last = {k: float(metrics[k][:, -1].mean()) for k in METRIC_ORDER if k in metrics}
+            bar.update(n)
+            sps = (done - start) * episodes_per_update * steps_per_episode / (time.time() - t0)
+            bar.set_postfix(
+                succ=f"{last.get('success_rate', 0):.2f}",
+                len=f"{last.get('episode_length', 0):.0f}",
+                R=f"{last.get('group_reward', 0):.0f}",
+                bits=f"{last.get('bits_per_step', 0):.1f}",
+                sps=f"{sps:.0f}",
+            )
+            if chunks % checkpoint_every == 0 or done >= num_updates:
+                checkpoint.save(ckpt, state, meta)
+            if on_chunk is not None:
+                on_chunk(done, state, metrics)
+    bar.close()
+    if writer is not None:
+        writer.close()
+    return state, runs

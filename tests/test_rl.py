@@ -1,0 +1,152 @@
+"""RL through the channel: gradient flow across agents, determinism, resume, learning."""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sparsecomm import checkpoint
+from sparsecomm.configs import ChannelConfig, RLConfig
+from sparsecomm.envs.navigation import NavConfig
+from sparsecomm.rl import discounted_targets, make_train
+from sparsecomm.rollout import link_tables, rollout
+from sparsecomm.sweep import SweepSpec, run_sweep
+
+TINY = RLConfig(env=NavConfig(max_steps=8), num_envs=4, num_updates=3)
+
+
+def _receiver_grads(mode: str, receiver: int):
+    cfg = dataclasses.replace(TINY, channel=ChannelConfig(mode=mode))
+    tr = make_train(cfg)
+    params = tr.team.init(jax.random.key(0))["actor"]
+
+    def receiver_loss(p):
+        traj = rollout(tr.team, tr.env, cfg.channel, p, jax.random.key(1), cfg.num_envs)
+        return (traj.log_probs[..., receiver, :] * traj.valid[..., None]).sum()
+
+    return jax.grad(receiver_loss)(params)
+
+
+def _agent_norm(grads, agent):
+    return sum(float(jnp.abs(g[agent]).sum()) for g in jax.tree.leaves(grads))
+
+
+@pytest.mark.parametrize("mode", ["discrete", "continuous"])
+def test_gradient_flows_from_receiver_into_every_sender(mode):
+    grads = _receiver_grads(mode, receiver=2)
+    for sender in (0, 1):
+        assert _agent_norm(grads, sender) > 0.0
+    # Specifically into the sender's message head (last Dense of the actor).
+    heads = [k for k in grads["params"] if k.startswith("Dense")]
+    head = sorted(heads, key=lambda k: int(k.split("_")[1]))[-1]
+    assert float(jnp.abs(grads["params"][head]["kernel"][0]).sum()) > 0.0
+
+
+def test_no_gradient_between_agents_without_communication():
+    grads = _receiver_grads("off", receiver=2)
+    assert _agent_norm(grads, 2) > 0.0
+    for sender in (0, 1):
+        assert _agent_norm(grads, sender) == 0.0
+
+
+def test_link_tables_route_each_link_to_its_recipient():
+    sender, slot = link_tables(4)
+    recipients = np.array([[j for j in range(4) if j != i] for i in range(4)])
+    for j in range(4):
+        assert list(sender[j]) == [i for i in range(4) if i != j]
+        for s in range(3):
+            assert recipients[sender[j, s], slot[j, s]] == j
+
+
+def test_returns_are_monte_carlo_and_stop_at_episode_end():
+    r = jnp.array([1.0, 2.0, 3.0, 5.0])[:, None, None]
+    valid = jnp.array([True, True, True, False])[:, None]
+    dones = jnp.array([False, False, True, False])[:, None]
+    v = jnp.zeros_like(r)
+    adv, target = discounted_targets(r * valid[..., None], v, dones, valid, 0.5, 1.0)
+    np.testing.assert_allclose(target[:, 0, 0], [1 + 0.5 * 2 + 0.25 * 3, 2 + 0.5 * 3, 3, 0])
+
+
+def test_training_is_deterministic():
+    tr = make_train(TINY)
+    a = jax.jit(tr.train)(jax.random.key(3), 0.0)
+    b = jax.jit(tr.train)(jax.random.key(3), 0.0)
+    for x, y in zip(jax.tree.leaves(a[0].params), jax.tree.leaves(b[0].params), strict=True):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_bits_and_penalty_logged_from_real_symbols():
+    tr = make_train(TINY)
+    _, m = jax.jit(tr.train)(jax.random.key(0), 0.0)
+    # 3 agents x 2 recipients x 10 elements; payload bits at most 4 each.
+    assert np.all((m["bits_per_step"] > 0) & (m["bits_per_step"] <= 60 * 4))
+    assert np.all(m["wire_bits_per_step"] == 2 * m["bits_per_step"] + 60)
+    off = make_train(dataclasses.replace(TINY, channel=ChannelConfig(mode="off")))
+    _, m = jax.jit(off.train)(jax.random.key(0), 0.0)
+    assert np.all(m["bits_per_step"] == 0) and np.all(m["penalty"] == 0)
+
+
+def test_lambda_lowers_bits():
+    cfg = dataclasses.replace(TINY, num_updates=30, lr=3e-3)
+    tr = make_train(cfg)
+    _, m = jax.jit(jax.vmap(tr.train, (None, 0)))(jax.random.key(0), jnp.array([0.0, 1.0]))
+    bits = np.asarray(m["bits_per_step"])[:, -5:].mean(1)
+    assert bits[1] < 0.5 * bits[0]
+
+
+def test_resume_gives_same_parameters_as_uninterrupted_run(tmp_path):
+    tr = make_train(TINY)
+    spec = SweepSpec(seeds=2, lams=(0.0, 0.01))
+    kw = dict(
+        episodes_per_update=4,
+        steps_per_episode=8,
+        chunk=1,
+        checkpoint_every=1,
+        tensorboard=False,
+        progress=False,
+    )
+    full, _ = run_sweep(tr, TINY, spec, tmp_path / "a", num_updates=4, **kw)
+    run_sweep(tr, TINY, spec, tmp_path / "b", num_updates=2, **kw)  # "dies" after 2 updates
+    resumed, _ = run_sweep(tr, TINY, spec, tmp_path / "b", num_updates=4, **kw)
+    for x, y in zip(jax.tree.leaves(full.params), jax.tree.leaves(resumed.params), strict=True):
+        np.testing.assert_array_equal(x, y)
+    rows_a = (tmp_path / "a" / "metrics.csv").read_text()
+    assert rows_a == (tmp_path / "b" / "metrics.csv").read_text()
+    # The checkpoint is msgpack + JSON (no pickle) and a different config refuses to resume.
+    assert checkpoint.load_meta(tmp_path / "b" / "checkpoint")["lams"] == [0.0, 0.01]
+    other = dataclasses.replace(TINY, lr=0.5)
+    with pytest.raises(ValueError, match="config differs"):
+        run_sweep(make_train(other), other, spec, tmp_path / "b", num_updates=4, **kw)
+
+
+def test_bad_config_names_the_field():
+    with pytest.raises(ValueError, match="RLConfig.lr must be > 0"):
+        RLConfig(lr=0.0)
+    with pytest.raises(ValueError, match="ChannelConfig.mode must be one of"):
+        ChannelConfig(mode="analog")
+    with pytest.raises(ValueError, match="lams"):
+        SweepSpec(lams=(-1.0,))
+
+
+def test_short_training_improves_the_team():
+    """CI learning smoke test: 40 updates of 32 episodes raise the group reward clearly."""
+    cfg = RLConfig(num_envs=32, lr=1e-3)
+    tr = make_train(cfg)
+    state = tr.init(jax.random.key(0), 0.0)
+    ev = jax.jit(lambda p: tr.evaluate(p, jax.random.key(99), 256))
+    before = float(ev(state.params["actor"])["group_reward"])
+    state, _ = jax.jit(tr.update_chunk, static_argnums=1)(state, 40)
+    after = float(ev(state.params["actor"])["group_reward"])
+    assert after > before + 500, (before, after)
+
+
+@pytest.mark.parametrize("shape", [(64, 64), (64, 192), (192, 64)])
+def test_orthogonal_init_is_orthogonal_and_random(shape):
+    from sparsecomm.agents import orthogonal
+
+    q = np.asarray(orthogonal()(jax.random.key(0), shape), np.float64)
+    gram = q.T @ q if shape[0] >= shape[1] else q @ q.T
+    np.testing.assert_allclose(gram, np.eye(gram.shape[0]), atol=1e-5)
+    assert not np.allclose(q, np.asarray(orthogonal()(jax.random.key(1), shape)))
