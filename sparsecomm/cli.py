@@ -1,4 +1,4 @@
-"""Command line: ``sparsecomm train | eval | render`` (typed configs via tyro).
+"""Command line: ``sparsecomm train | imitate | eval | render`` (typed configs via tyro).
 
 Every flag is a documented config field: ``sparsecomm train --help`` lists them all.
 """
@@ -13,10 +13,10 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
-import tyro
 
 from sparsecomm import checkpoint
-from sparsecomm.configs import RLConfig, from_dict
+from sparsecomm.configs import ILConfig, RLConfig, from_dict
+from sparsecomm.imitation import make_imitate
 from sparsecomm.report import bootstrap_ci, plot_curves
 from sparsecomm.rl import make_train
 from sparsecomm.sweep import SweepSpec, run_sweep
@@ -30,6 +30,7 @@ class Train:
     """Train teams by actor-critic RL through the channel; a sweep of lambdas x seeds."""
 
     config: RLConfig = RLConfig()
+    """The learner."""
     seeds: int = 1
     """Seeds per lambda."""
     lams: tuple[float, ...] = (0.0,)
@@ -50,6 +51,16 @@ class Train:
     """Render one episode of the first run's team to ``out/team.gif``."""
     progress: bool = True
     """Show a progress bar."""
+
+
+@dataclasses.dataclass
+class Imitate(Train):
+    """Imitate an expert's actions through the channel; a sweep of lambdas x seeds."""
+
+    config: ILConfig = ILConfig()
+    """The learner."""
+    out: Path = Path("runs/imitate")
+    """Output folder: metrics.csv, tensorboard/, checkpoint/, results.json, curves.png, team.gif."""
 
 
 @dataclasses.dataclass
@@ -82,12 +93,14 @@ class Render:
     """Frames per second."""
 
 
-def _load_run(folder: Path):
+def load_run(folder: Path):
     meta = checkpoint.load_meta(folder / "checkpoint")
-    if meta["kind"] != "train":
-        raise ValueError(f"{folder} holds a {meta['kind']!r} run, not 'train'")
-    config = from_dict(RLConfig, meta["config"])
-    trainer = make_train(config)
+    kinds = {"train": (RLConfig, make_train), "imitate": (ILConfig, make_imitate)}
+    if meta.get("kind") not in kinds:
+        raise ValueError(f"{folder} holds a {meta.get('kind')!r} run, not one of {list(kinds)}")
+    config_cls, make = kinds[meta["kind"]]
+    config = from_dict(config_cls, meta["config"])
+    trainer = make(config)
     spec = SweepSpec(meta["seeds"], tuple(meta["lams"]))
     runs = spec.runs()
     keys = jnp.stack([jax.random.key(0)] * len(runs))
@@ -133,8 +146,10 @@ def render_run(trainer, actor_params, seed: int, out: Path, fps: int = 12) -> Pa
 
 
 def train(args: Train) -> dict:
+    """Run ``sparsecomm train`` or ``sparsecomm imitate`` (by the type of ``args``)."""
     cfg = args.config
-    trainer = make_train(cfg)
+    kind = "imitate" if isinstance(args, Imitate) else "train"
+    trainer = make_imitate(cfg) if kind == "imitate" else make_train(cfg)
     spec = SweepSpec(args.seeds, args.lams)
     t0 = time.time()
     state, runs = run_sweep(
@@ -150,7 +165,7 @@ def train(args: Train) -> dict:
         resume=args.resume,
         tensorboard=args.tensorboard,
         progress=args.progress,
-        kind="train",
+        kind=kind,
     )
     wall = time.time() - t0
     results = evaluate_runs(trainer, runs, state, args.eval_episodes)
@@ -170,7 +185,11 @@ def train(args: Train) -> dict:
             f"bits/step {m['bits_per_step']['mean']:.1f}"
         )
     if cfg.num_updates > 0:
-        print(f"curves  -> {plot_curves(args.out / 'metrics.csv', args.out / 'curves.png')}")
+        metrics = ("group_reward", "episode_length", "success_rate", "bits_per_step")
+        if kind == "imitate":
+            metrics = ("imitation_loss", *metrics)
+        curves = plot_curves(args.out / "metrics.csv", args.out / "curves.png", metrics)
+        print(f"curves  -> {curves}")
     if args.gif:
         params0 = jax.tree.map(lambda x: x[0], state.params["actor"])
         print(f"gif     -> {render_run(trainer, params0, 0, args.out / 'team.gif')}")
@@ -178,7 +197,7 @@ def train(args: Train) -> dict:
 
 
 def evaluate(args: Eval) -> dict:
-    _, trainer, runs, state = _load_run(args.run)
+    _, trainer, runs, state = load_run(args.run)
     results = evaluate_runs(trainer, runs, state, args.episodes, args.greedy)
     out = args.out or args.run / "eval.json"
     out.write_text(json.dumps(results, indent=2))
@@ -188,7 +207,7 @@ def evaluate(args: Eval) -> dict:
 
 
 def render(args: Render) -> Path:
-    _, trainer, runs, state = _load_run(args.run)
+    _, trainer, runs, state = load_run(args.run)
     if not 0 <= args.index < len(runs):
         raise ValueError(f"index must be in [0, {len(runs) - 1}], got {args.index}")
     params = jax.tree.map(lambda x: x[args.index], state.params["actor"])
@@ -198,10 +217,12 @@ def render(args: Render) -> Path:
 
 
 def main(argv: list[str] | None = None) -> None:
+    import tyro
+
     cmd = tyro.extras.subcommand_cli_from_dict(
-        {"train": Train, "eval": Eval, "render": Render}, args=argv
+        {"train": Train, "imitate": Imitate, "eval": Eval, "render": Render}, args=argv
     )
-    handler = {Train: train, Eval: evaluate, Render: render}[type(cmd)]
+    handler = {Train: train, Imitate: train, Eval: evaluate, Render: render}[type(cmd)]
     handler(cmd)
 
 
