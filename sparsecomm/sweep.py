@@ -74,6 +74,21 @@ def _truncate_csv(path: Path, max_update: int) -> None:
         csv.writer(f).writerows(keep)
 
 
+def shard_runs(tree, num_runs: int, devices=None):
+    """Place the run axis (axis 0 of every leaf) across local devices with ``jax.sharding``.
+
+    Runs are independent, so the vmapped update partitions along them with no communication.
+    With one device, or a run count that does not divide evenly, the tree stays where it is.
+    Under ``jax.distributed`` (multi-host), pass ``jax.devices()`` to span every host.
+    """
+    devices = jax.local_devices() if devices is None else devices
+    if len(devices) == 1 or num_runs % len(devices):
+        return tree
+    mesh = jax.sharding.Mesh(np.asarray(devices), ("runs",))
+    spec = jax.sharding.PartitionSpec("runs")
+    return jax.device_put(tree, jax.sharding.NamedSharding(mesh, spec))
+
+
 @functools.lru_cache(maxsize=16)
 def _compiled(learner):
     """The learner's vmapped, jitted ``init`` and ``update_chunk`` (compiled once per learner)."""
@@ -98,14 +113,20 @@ def run_sweep(
     progress: bool = True,
     kind: str = "train",
     on_chunk: Callable | None = None,
+    devices=None,
 ):
-    """Run (or resume) a sweep; returns the final batched state and the run list."""
+    """Run (or resume) a sweep; returns the final batched state and the run list.
+
+    The runs are split over ``devices`` (default: all local devices) when their number divides
+    evenly (:func:`shard_runs`); pass ``[jax.devices()[0]]`` to keep everything on one device.
+    """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     runs = spec.runs()
     keys = jnp.stack([jax.random.key(config.seed + s) for s, _ in runs])
     lams = jnp.asarray([lam for _, lam in runs], jnp.float32)
     init, steps = _compiled(learner)
+    keys, lams = shard_runs((keys, lams), len(runs), devices)
     state = init(keys, lams)
     meta = {
         "kind": kind,
@@ -126,7 +147,7 @@ def run_sweep(
                     f"cannot resume from {ckpt}: its {field} differs from this run's "
                     f"(use a new --out folder or --no-resume)"
                 )
-        state = checkpoint.load(ckpt, state)
+        state = shard_runs(checkpoint.load(ckpt, state), len(runs), devices)
         start = int(np.asarray(state.update).max())
         _truncate_csv(csv_path, start)
     elif csv_path.exists():

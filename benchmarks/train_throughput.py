@@ -1,0 +1,92 @@
+"""Rollout and training throughput (env steps/s) and peak memory, by hand.
+
+One "env step" is one step of the whole team in one episode. ``rollout`` plays episodes with the
+actors and the channel, no gradient; ``train`` is a full update: rollout, loss, backpropagation
+through the episode and through the channel, Adam step. Compile time excluded; the median of
+``--repeats`` timed calls is reported.
+
+    python benchmarks/train_throughput.py --mode train --num-envs 256 --seeds 1
+    python benchmarks/train_throughput.py --mode rollout --num-envs 256 --agents 5 --max-steps 128
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import resource
+import statistics
+import time
+from typing import Literal
+
+import jax
+import tyro
+
+from sparsecomm.configs import RLConfig
+from sparsecomm.envs.navigation import NavConfig
+from sparsecomm.rl import make_train
+from sparsecomm.rollout import rollout
+
+
+@dataclasses.dataclass
+class Args:
+    mode: Literal["rollout", "train"] = "train"
+    """What to time."""
+    num_envs: int = 256
+    """Parallel episodes per seed."""
+    agents: int = 3
+    """K."""
+    max_steps: int = 256
+    """Episode length T."""
+    seeds: int = 1
+    """Vmapped seeds (independent runs)."""
+    remat: bool = False
+    """jax.checkpoint each step (train mode)."""
+    updates: int = 2
+    """Updates per timed call (train mode)."""
+    repeats: int = 3
+    """Timed calls."""
+
+
+def main(a: Args) -> None:
+    env = NavConfig(num_agents=a.agents, max_steps=a.max_steps)
+    cfg = RLConfig(env=env, num_envs=a.num_envs, remat=a.remat)
+    tr = make_train(cfg)
+    keys = jax.random.split(jax.random.key(0), a.seeds)
+    state = jax.jit(jax.vmap(tr.init, (0, None)))(keys, 0.0)
+    if a.mode == "train":
+        fn = jax.jit(jax.vmap(lambda s: tr.update_chunk(s, a.updates)[0]))
+        steps_per_call = a.seeds * a.updates * a.num_envs * a.max_steps
+        arg = state
+    else:
+
+        def play(params, key):
+            traj = rollout(tr.team, tr.env, cfg.channel, params, key, a.num_envs)
+            return traj.payload_bits.sum()
+
+        fn = jax.jit(jax.vmap(play))
+        steps_per_call = a.seeds * a.num_envs * a.max_steps
+        arg = (state.params["actor"], keys)
+    call = (lambda: fn(arg)) if a.mode == "train" else (lambda: fn(*arg))
+    t0 = time.perf_counter()
+    jax.block_until_ready(call())
+    compile_s = time.perf_counter() - t0
+    times = []
+    for _ in range(a.repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(call())
+        times.append(time.perf_counter() - t0)
+    med = statistics.median(times)
+    peak_rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+    dev = jax.devices()[0]
+    mem = dev.memory_stats() or {}
+    peak_dev = mem.get("peak_bytes_in_use", 0) / 2**30
+    print(
+        f"{a.mode} K={a.agents} T={a.max_steps} envs={a.num_envs} seeds={a.seeds} "
+        f"remat={a.remat}: {steps_per_call / med:,.0f} env steps/s (median of {a.repeats}, "
+        f"{med:.2f} s/call; compile+first {compile_s:.1f} s) peak RSS {peak_rss:.2f} GiB"
+        + (f", device peak {peak_dev:.2f} GiB" if peak_dev else "")
+        + f" on {dev.platform} jax {jax.__version__}"
+    )
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))
