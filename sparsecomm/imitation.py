@@ -28,7 +28,7 @@ from sparsecomm.configs import ILConfig
 from sparsecomm.envs.navigation import NavigationEnv
 from sparsecomm.envs.oracle import oracle_actions
 from sparsecomm.rl import make_team
-from sparsecomm.rollout import Expert, episode_metrics, link_tables, rollout, transmit
+from sparsecomm.rollout import Expert, deliver, episode_metrics, rollout, transmit
 
 
 class ILState(struct.PyTreeNode):
@@ -57,7 +57,6 @@ def team_expert(team: Team, channel_cfg, actor_params) -> Expert:
     """A trained team as an :class:`Expert`: it talks among itself over its own channel (fresh
     dither keys), and only its actions leave it. Acts greedily."""
     k = team.num_agents
-    sender, slot = (jnp.asarray(a) for a in link_tables(k))
     c = channel_cfg.num_elements
 
     def init(batch):
@@ -69,7 +68,7 @@ def team_expert(team: Team, channel_cfg, actor_params) -> Expert:
         h, msgs, keys, t = carry
         h, logits, z = team.act(actor_params, h, obs, msgs)
         z_hat = transmit(channel_cfg, keys, t, z)[0]
-        msgs = z_hat[:, sender, slot].reshape(msgs.shape)
+        msgs = deliver(z_hat)
         return (h, msgs, keys, t + 1), jnp.argmax(logits, -1)
 
     return Expert(init=init, step=step)

@@ -76,6 +76,14 @@ def link_tables(num_agents: int) -> tuple[np.ndarray, np.ndarray]:
     return sender.reshape(num_agents, num_agents - 1), slot.reshape(num_agents, num_agents - 1)
 
 
+def deliver(z_hat: jax.Array) -> jax.Array:
+    """Route decoded links to their recipients: (B, K, K-1, C) by sender -> (B, K, (K-1) C),
+    receiver j's row holding the messages of the other agents in increasing order."""
+    b, k, _, c = z_hat.shape
+    sender, slot = link_tables(k)
+    return z_hat[:, sender, slot].reshape(b, k, (k - 1) * c)
+
+
 def recipients(num_agents: int) -> np.ndarray:
     """(K, K-1): the recipient of sender i's output slot r."""
     return np.array([[j for j in range(num_agents) if j != i] for i in range(num_agents)])
@@ -140,7 +148,6 @@ def rollout(
       keep_states: also return the environment states (for rendering and tests).
     """
     k = env.num_agents
-    sender, slot = (jnp.asarray(a) for a in link_tables(k))
     k_reset, k_chan, k_steps = jax.random.split(key, 3)
     obs, state = jax.vmap(env.reset)(jax.random.split(k_reset, num_envs))
     chan_keys = jax.random.split(k_chan, num_envs)
@@ -165,7 +172,7 @@ def rollout(
         else:
             expert_actions = jnp.full(actions.shape, -1)
         z_hat, penalty, payload, wire, link = transmit(channel_cfg, chan_keys, t, z)
-        next_msgs = z_hat[:, sender, slot].reshape(num_envs, k, (k - 1) * c)
+        next_msgs = deliver(z_hat)
         global_state = jax.vmap(env.global_state)(state)
         valid = ~state.done
         next_obs, next_state, rewards, dones, info = jax.vmap(env.step)(
