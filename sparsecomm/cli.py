@@ -1,4 +1,4 @@
-"""Command line: ``sparsecomm train | imitate | eval | render`` (typed configs via tyro).
+"""Command line: ``sparsecomm train | imitate | eval | render | reproduce`` (typed configs, tyro).
 
 Every flag is a documented config field: ``sparsecomm train --help`` lists them all.
 """
@@ -219,11 +219,12 @@ def render(args: Render) -> Path:
 def main(argv: list[str] | None = None) -> None:
     import tyro
 
-    cmd = tyro.extras.subcommand_cli_from_dict(
-        {"train": Train, "imitate": Imitate, "eval": Eval, "render": Render}, args=argv
-    )
-    handler = {Train: train, Imitate: train, Eval: evaluate, Render: render}[type(cmd)]
-    handler(cmd)
+    from sparsecomm.reproduce import Reproduce, reproduce
+
+    commands = {"train": Train, "imitate": Imitate, "eval": Eval, "render": Render}
+    cmd = tyro.extras.subcommand_cli_from_dict({**commands, "reproduce": Reproduce}, args=argv)
+    handler = {Train: train, Imitate: train, Eval: evaluate, Render: render, Reproduce: reproduce}
+    handler[type(cmd)](cmd)
 
 
 if __name__ == "__main__":

@@ -105,3 +105,58 @@ def plot_curves(
     fig.savefig(out_png, dpi=110)
     plt.close(fig)
     return out_png
+
+
+def plot_pareto(points, out_png: str | Path, title: str | None = None) -> Path:
+    """Success rate and group reward against payload bits per step, one marker per method.
+
+    ``points``: sequence of dicts with ``label``, ``group`` (methods of one group share a colour
+    and are joined by a line, e.g. the lambdas of a sweep) and ``bits_per_step``,
+    ``success_rate``, ``group_reward``, each a ``(mean, ci_low, ci_high)`` tuple. The bit axis is
+    symmetric-log so that 0 bits (no communication, the oracle) stays on the plot.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    points = list(points)
+    if not points:
+        raise ValueError("points must be non-empty")
+    groups = list(dict.fromkeys(p["group"] for p in points))
+    colours = {g: f"C{i % 10}" for i, g in enumerate(groups)}
+    fig, axes = plt.subplots(1, 2, figsize=(10.5, 4.2))
+    for ax, metric in zip(axes, ("success_rate", "group_reward"), strict=True):
+        for g in groups:
+            pts = sorted(
+                (p for p in points if p["group"] == g), key=lambda p: p["bits_per_step"][0]
+            )
+            x = np.array([p["bits_per_step"] for p in pts])
+            y = np.array([p[metric] for p in pts])
+            ax.errorbar(
+                x[:, 0],
+                y[:, 0],
+                xerr=np.abs(x[:, 1:].T - x[:, 0]),
+                yerr=np.abs(y[:, 1:].T - y[:, 0]),
+                fmt="o-" if len(pts) > 1 else "o",
+                color=colours[g],
+                capsize=3,
+                label=g,
+            )
+            for p, xi, yi in zip(pts, x[:, 0], y[:, 0], strict=True):
+                if p["label"] != g:
+                    ax.annotate(
+                        p["label"], (xi, yi), fontsize=7, xytext=(3, 3), textcoords="offset points"
+                    )
+        ax.set_xscale("symlog", linthresh=1.0)
+        ax.set_xlabel("payload bits per step (team)")
+        ax.set_title(metric.replace("_", " "))
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    out_png = Path(out_png)
+    fig.savefig(out_png, dpi=110)
+    plt.close(fig)
+    return out_png

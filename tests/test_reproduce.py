@@ -1,0 +1,197 @@
+"""``sparsecomm reproduce --quick`` end to end with a tiny budget, and the claim-deciding rules."""
+
+import json
+
+import pytest
+
+from sparsecomm import report_md
+from sparsecomm.cli import main
+from sparsecomm.reproduce import IL_LAMS, PARTS, RL_LAMS, Reproduce
+
+TINY = [
+    "--quick",
+    "--seeds",
+    "2",
+    "--rl-updates",
+    "2",
+    "--rl-envs",
+    "2",
+    "--il-updates",
+    "2",
+    "--il-envs",
+    "2",
+    "--eval-episodes",
+    "4",
+    "--rl.env.max-steps",
+    "12",
+    "--il.env.max-steps",
+    "12",
+    "--no-progress",
+]
+
+
+@pytest.fixture(scope="module")
+def quick_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("reproduce")
+    main(["reproduce", *TINY, "--out", str(out)])
+    return out
+
+
+def test_quick_writes_every_artefact(quick_run):
+    out = quick_run
+    for name in (
+        "fig1.png",
+        "fig2.png",
+        "fig3.png",
+        "pareto.png",
+        "table1.md",
+        "report.md",
+        "summary.json",
+        "timings.json",
+    ):
+        assert (out / name).stat().st_size > 0, name
+    for part in ("rl", "imitation", "no_comm", "continuous", "fixed"):
+        assert (out / part / "results.json").stat().st_size > 0, part
+    assert (out / "oracle" / "results.json").exists() and (out / "oracle" / "centre.json").exists()
+    timings = json.loads((out / "timings.json").read_text())
+    assert set(PARTS) <= set(timings)
+    assert timings["rl"]["budget"]["env_steps_per_run"] == 2 * 2 * 12
+    assert timings["rl"]["hardware"]["cpu_cores"] >= 1
+
+
+def test_report_decides_every_claim(quick_run):
+    text = (quick_run / "report.md").read_text()
+    for n, claim in enumerate(report_md.CLAIMS, 1):
+        line = next(ln for ln in text.splitlines() if ln.startswith(f"| {n} | {claim}"))
+        assert "**held**" in line or "**not held**" in line, line
+    for heading in ("Hardware and wall-clock", "Baselines", "Budgets"):
+        assert heading in text
+    for label in ("no communication", "float32", "fixed-width", "oracle"):
+        assert label in text
+
+
+def test_table1_has_every_lambda(quick_run):
+    table = (quick_run / "table1.md").read_text()
+    rows = [ln.split("|")[1].strip() for ln in table.splitlines() if ln.startswith("| ")][1:]
+    assert rows == [f"{lam:g}" for lam in sorted(IL_LAMS, reverse=True)]
+    summary = json.loads((quick_run / "summary.json").read_text())
+    assert set(summary["rl"]) == {f"{lam:g}" for lam in RL_LAMS}
+    # the fixed-width code sends ceil(log2(16)) = 4 bits for each of 60 elements every step
+    assert summary["baselines"]["fixed"]["bits_per_step"]["mean"] == 240.0
+    assert summary["baselines"]["continuous"]["bits_per_step"]["mean"] == 32 * 60
+    assert summary["baselines"]["no_comm"]["bits_per_step"]["mean"] == 0.0
+    assert summary["baselines"]["oracle"]["success_rate"]["mean"] == 0.0  # 12-step episodes
+
+
+@pytest.mark.parametrize(
+    "field,value",
+    [
+        ("seeds", 0),
+        ("rl_updates", -1),
+        ("eval_episodes", 0),
+        ("parts", ("rl", "nope")),
+        ("rl_lams", (0.01, -1.0)),
+        ("rl_lams", (0.01,)),  # the fixed part needs lambda 0
+        ("chunk", 0),
+    ],
+)
+def test_bad_config_names_the_field(field, value):
+    with pytest.raises(ValueError, match=f"Reproduce.{field}"):
+        Reproduce(**{field: value})
+
+
+# ---- the claim rules on synthetic numbers -------------------------------------------------
+
+
+def st(mean, half=0.0):
+    return {"mean": mean, "ci_low": mean - half, "ci_high": mean + half, "iqm": mean, "n": 5}
+
+
+def method(success, reward, bits, length=100.0, half=0.01):
+    return {
+        "success_rate": st(success, half),
+        "group_reward": st(reward, abs(reward) * half),
+        "bits_per_step": st(bits, bits * half),
+        "episode_length": st(length, 1.0),
+    }
+
+
+def paper_like():
+    """Numbers shaped like the paper's results: every claim holds."""
+    return {
+        "rl": {
+            0.0: method(0.9, 10000, 120),
+            0.001: method(0.88, 9900, 50),
+            0.005: method(0.86, 9800, 30),
+            0.01: method(0.6, 6000, 10),
+        },
+        "imitation": {
+            0.0: method(0.9, 13000, 110),
+            0.0001: method(0.89, 13000, 60),
+            0.0004: method(0.87, 13000, 40),
+            0.0007: method(0.85, 13000, 30),
+            0.001: method(0.01, 3700, 2),
+        },
+        "baselines": {"no_comm": method(0.0, 1000, 0.0)},
+        "training_success": {"rl": {0.0: st(0.5, 0.05)}, "rcl": st(0.1, 0.05)},
+    }
+
+
+def verdicts(summary):
+    return [c.held for c in report_md.decide_claims(summary)]
+
+
+def test_claims_hold_on_paper_like_numbers():
+    assert verdicts(paper_like()) == [True] * 6
+
+
+def test_claim_1_fails_when_no_comm_succeeds():
+    s = paper_like()
+    s["baselines"]["no_comm"] = method(0.3, 5000, 0.0)
+    assert verdicts(s)[0] is False
+
+
+def test_claim_2_fails_when_one_lambda_does_not_beat_no_comm():
+    s = paper_like()
+    s["rl"][0.01] = method(0.1, 2000, 10)
+    assert verdicts(s)[1] is False
+
+
+def test_claim_3_fails_when_bits_rise_with_lambda():
+    s = paper_like()
+    s["rl"][0.005] = method(0.86, 9800, 80)  # more than at lambda 0.001
+    assert verdicts(s)[2] is False
+    s = paper_like()
+    for lam in s["rl"]:
+        s["rl"][lam]["bits_per_step"] = st(100.0, 5.0)  # flat: CIs overlap
+    assert verdicts(s)[2] is False
+
+
+def test_claim_4_fails_when_reward_is_hurt_or_bits_not_halved():
+    s = paper_like()
+    s["rl"][0.001] = method(0.7, 8000, 50)  # 2000 below, > 10% of the 9000 gain
+    assert verdicts(s)[3] is False
+    s = paper_like()
+    s["rl"][0.001] = method(0.88, 9900, 100)
+    s["rl"][0.005] = method(0.86, 9800, 70)  # never <= 120 / 2
+    assert verdicts(s)[3] is False
+
+
+def test_claim_5_needs_learning_sparsity_and_collapse():
+    s = paper_like()
+    s["imitation"][0.001] = method(0.8, 12000, 10)  # no collapse
+    assert verdicts(s)[4] is False
+    s = paper_like()
+    for lam in (0.0001, 0.0004, 0.0007):
+        s["imitation"][lam]["bits_per_step"] = st(100.0, 1.0)  # not sparse
+    assert verdicts(s)[4] is False
+    s = paper_like()
+    s["imitation"][0.0] = method(0.3, 8000, 110)  # never learned
+    assert verdicts(s)[4] is False
+
+
+def test_extra_rcl_check_and_missing_parts():
+    s = paper_like()
+    s["training_success"]["rcl"] = st(0.5, 0.05)
+    assert verdicts(s)[5] is False
+    assert verdicts({"rl": paper_like()["rl"]}) == [None, None, True, True, None, None]
