@@ -11,7 +11,7 @@ import dataclasses
 from sparsecomm.channel import CODE_NAMES, Code
 from sparsecomm.envs.navigation import NavConfig
 
-CHANNEL_MODES = ("discrete", "continuous", "off")
+CHANNEL_MODES = ("discrete", "continuous", "off", "reinforced")
 
 
 def _bad(owner: str, name: str, value, allowed: str) -> ValueError:
@@ -25,15 +25,25 @@ class ChannelConfig:
     mode: str = "discrete"
     """``discrete``: dithered quantization, the paper's method. ``continuous``: real-valued
     messages sent as float32 (a baseline, 32 bits per element). ``off``: no communication
-    (messages are zeros, 0 bits; a baseline)."""
+    (messages are zeros, 0 bits; a baseline). ``reinforced``: reinforced communication learning
+    (RCL, a baseline): each element's symbol is sampled as an action, m ~ Binomial(levels, z),
+    the receiver gets m / levels with no gradient through the channel, and the senders learn by
+    policy gradient on the log-probability of the symbols sent, with ``bit_cost`` per bit."""
     levels: int = 15
     """|M|, symbols per element are {0, ..., levels}. SPEC section 1."""
     num_elements: int = 10
     """C, elements of the signal z each agent sends to each recipient per step. Paper: 10."""
     code: str = "paper"
-    """Code used to count payload bits (and frame them on the wire) for ``discrete`` mode:
+    """Code used to count payload bits (and frame them on the wire) for the ``discrete`` and
+    ``reinforced`` modes:
     ``paper`` (the paper's variable-length code, Elias-gamma framing) or ``fixed`` (fixed-width,
     a baseline). SPEC section 2."""
+    bit_cost: float = 0.0
+    """``reinforced`` mode only: reward subtracted from agent i at step t per payload bit it
+    sends (paper reward units, scaled by ``reward_scale`` like the task reward; not included in
+    the logged group reward). Neither the paper nor SPEC gives a value; ours: 0 (no cost), and
+    ``sparsecomm reproduce`` uses 0.1, the surrogate penalty's price per bit at lambda = 0.001
+    (lambda / reward_scale)."""
 
     def __post_init__(self):
         if self.mode not in CHANNEL_MODES:
@@ -44,6 +54,8 @@ class ChannelConfig:
             raise _bad("ChannelConfig", "num_elements", self.num_elements, "an integer >= 1")
         if self.code not in CODE_NAMES[:2]:
             raise _bad("ChannelConfig", "code", self.code, f"one of {CODE_NAMES[:2]}")
+        if not (self.bit_cost >= 0 and self.bit_cost < float("inf")):
+            raise _bad("ChannelConfig", "bit_cost", self.bit_cost, "finite and >= 0")
 
     @property
     def code_obj(self) -> Code:

@@ -48,7 +48,7 @@ RL_LAMS = (0.01, 0.005, 0.001, 0.0)
 """Paper, section V: the RL penalty weights."""
 IL_LAMS = (0.001, 0.0007, 0.0004, 0.0001, 0.0)
 """Paper, section V and Table I: the imitation penalty weights (0 added as the reference)."""
-PARTS = ("rl", "imitation", "no_comm", "continuous", "fixed", "oracle")
+PARTS = ("rl", "imitation", "no_comm", "continuous", "fixed", "rcl", "oracle")
 """Every part, in the order they run."""
 FULL = {"seeds": 5, "eval_episodes": 500, "chunk": 10}
 """Defaults of the full run for fields left at None (budgets: the RLConfig/ILConfig defaults)."""

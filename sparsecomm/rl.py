@@ -123,6 +123,10 @@ def make_train(config: RLConfig) -> Trainer:
         valid = traj.valid.astype(jnp.float32)
         values = team.value(params["critic"], traj.states)
         rewards = traj.rewards * config.reward_scale * valid[..., None]
+        reinforced = config.channel.mode == "reinforced"
+        if reinforced:  # RCL: each agent pays bit_cost per payload bit it sends
+            sent = traj.link_bits.sum(-1) * valid[..., None]  # (T, B, K) bits by sender
+            rewards = rewards - config.channel.bit_cost * config.reward_scale * sent
         adv, targets = discounted_targets(
             rewards,
             jax.lax.stop_gradient(values),
@@ -132,6 +136,8 @@ def make_train(config: RLConfig) -> Trainer:
             config.gae_lambda,
         )
         logp = jnp.take_along_axis(traj.log_probs, traj.actions[..., None], -1)[..., 0]
+        if reinforced:  # the symbols sent are actions too, with the same advantage
+            logp = logp + traj.msg_log_probs
         entropy = -(jnp.exp(traj.log_probs) * traj.log_probs).sum(-1)
         pg = -(logp * jax.lax.stop_gradient(adv)).sum(-1)
         value_loss = jnp.square(values - jax.lax.stop_gradient(targets)).sum(-1)

@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+from jax.scipy.special import gammaln
 
 from sparsecomm import channel
 from sparsecomm.agents import Team
@@ -57,6 +58,7 @@ class Trajectory:
     payload_bits: jax.Array  # (T, B) real payload bits sent by the team
     wire_bits: jax.Array  # (T, B) bits on the wire, framing included
     link_bits: jax.Array  # (T, B, K, K) payload bits sent i -> j (zero diagonal)
+    msg_log_probs: jax.Array  # (T, B, K) log-prob of sender i's symbols ("reinforced"; else 0)
     env_states: Any = None  # batched NavState per step (only when ``keep_states``)
 
 
@@ -97,6 +99,8 @@ def transmit(cfg: ChannelConfig, keys: jax.Array, t: jax.Array, z: jax.Array):
     """
     b, k, r, c = z.shape
     zeros_b = jnp.zeros((b,), jnp.float32)
+    if cfg.mode == "reinforced":
+        return transmit_reinforced(cfg, keys, t, z)[:5]
     if cfg.mode == "off":
         z0 = jnp.zeros_like(z)
         return z0, zeros_b, zeros_b, zeros_b, jnp.zeros((b, k, r), jnp.float32)
@@ -117,6 +121,41 @@ def transmit(cfg: ChannelConfig, keys: jax.Array, t: jax.Array, z: jax.Array):
     wire = channel.wire_bits(m, code).sum((-3, -2, -1)).astype(jnp.float32)
     penalty = channel.bit_penalty(z, cfg.levels).sum((-3, -2, -1))
     return z_hat, penalty, link.sum((-2, -1)), wire, link
+
+
+def transmit_reinforced(cfg: ChannelConfig, keys: jax.Array, t: jax.Array, z: jax.Array):
+    """Reinforced communication learning (``mode = "reinforced"``, a baseline): symbols are
+    actions.
+
+    ``keys`` (B,) episode channel keys, ``t`` the step, ``z`` (B, K, K-1, C). Each element's
+    symbol is sampled as m ~ Binomial(levels, z) (the number of ``levels`` uniforms below z,
+    drawn with the link's key ``dither_key(keys[b], t, i, j)``): full support on {0, ...,
+    levels}, mean ``levels * z``. The receiver gets ``stop_gradient(m / levels)``, so no gradient
+    crosses the channel; the sender learns from the log-probability of what it sent (z clipped
+    to [1e-6, 1 - 1e-6] there). Returns :func:`transmit`'s five values and that log-probability
+    per sender, (B, K), summed over its recipients and elements.
+    """
+    k = z.shape[1]
+    z_sample = jax.lax.stop_gradient(z)
+
+    def one_link(key, i, j, z_link):
+        u = jax.random.uniform(channel.dither_key(key, t, i, j), (*z_link.shape, cfg.levels))
+        return (u < z_link[..., None]).sum(-1)
+
+    per_link = jax.vmap(jax.vmap(one_link, (None, None, 0, 0)), (None, 0, 0, 0))
+    m = jax.vmap(per_link, (0, None, None, 0))(
+        keys, jnp.arange(k), jnp.asarray(recipients(k)), z_sample
+    )
+    n, mf = float(cfg.levels), m.astype(jnp.float32)
+    zc = jnp.clip(z, 1e-6, 1.0 - 1e-6)
+    log_comb = gammaln(n + 1.0) - gammaln(mf + 1.0) - gammaln(n - mf + 1.0)
+    log_prob = (log_comb + mf * jnp.log(zc) + (n - mf) * jnp.log1p(-zc)).sum((-2, -1))
+    code = cfg.code_obj
+    link = channel.payload_bits(m, code).sum(-1).astype(jnp.float32)
+    wire = channel.wire_bits(m, code).sum((-3, -2, -1)).astype(jnp.float32)
+    penalty = channel.bit_penalty(z, cfg.levels).sum((-3, -2, -1))
+    z_hat = jax.lax.stop_gradient(mf / n)
+    return z_hat, penalty, link.sum((-2, -1)), wire, link, log_prob
 
 
 def rollout(
@@ -171,7 +210,13 @@ def rollout(
             actions = jnp.where(use_expert, expert_actions, actions)
         else:
             expert_actions = jnp.full(actions.shape, -1)
-        z_hat, penalty, payload, wire, link = transmit(channel_cfg, chan_keys, t, z)
+        if channel_cfg.mode == "reinforced":
+            z_hat, penalty, payload, wire, link, msg_logp = transmit_reinforced(
+                channel_cfg, chan_keys, t, z
+            )
+        else:
+            z_hat, penalty, payload, wire, link = transmit(channel_cfg, chan_keys, t, z)
+            msg_logp = jnp.zeros((num_envs, k), jnp.float32)
         next_msgs = deliver(z_hat)
         global_state = jax.vmap(env.global_state)(state)
         valid = ~state.done
@@ -193,6 +238,7 @@ def rollout(
             payload_bits=payload,
             wire_bits=wire,
             link_bits=full_link,
+            msg_log_probs=msg_logp,
             env_states=state if keep_states else None,
         )
         return (next_state, next_obs, next_msgs, carry, expert_carry), record

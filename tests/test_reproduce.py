@@ -50,7 +50,7 @@ def test_quick_writes_every_artefact(quick_run):
         "timings.json",
     ):
         assert (out / name).stat().st_size > 0, name
-    for part in ("rl", "imitation", "no_comm", "continuous", "fixed"):
+    for part in ("rl", "imitation", "no_comm", "continuous", "fixed", "rcl"):
         assert (out / part / "results.json").stat().st_size > 0, part
     assert (out / "oracle" / "results.json").exists() and (out / "oracle" / "centre.json").exists()
     timings = json.loads((out / "timings.json").read_text())
@@ -66,8 +66,10 @@ def test_report_decides_every_claim(quick_run):
         assert "**held**" in line or "**not held**" in line, line
     for heading in ("Hardware and wall-clock", "Baselines", "Budgets"):
         assert heading in text
-    for label in ("no communication", "float32", "fixed-width", "oracle"):
+    for label in ("no communication", "float32", "fixed-width", "oracle", "RCL"):
         assert label in text
+    extra = next(ln for ln in text.splitlines() if ln.startswith("| extra |"))
+    assert "**held**" in extra or "**not held**" in extra, extra
 
 
 def test_table1_has_every_lambda(quick_run):
