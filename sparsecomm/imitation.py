@@ -28,7 +28,7 @@ from sparsecomm.configs import ILConfig
 from sparsecomm.envs.navigation import NavigationEnv
 from sparsecomm.envs.oracle import oracle_actions
 from sparsecomm.rl import make_team
-from sparsecomm.rollout import Expert, deliver, episode_metrics, rollout, transmit
+from sparsecomm.rollout import Expert, deliver, episode_metrics, rollout, step_dither, transmit
 
 
 class ILState(struct.PyTreeNode):
@@ -67,7 +67,7 @@ def team_expert(team: Team, channel_cfg, actor_params) -> Expert:
     def step(carry, key, state, obs):
         h, msgs, keys, t = carry
         h, logits, z = team.act(actor_params, h, obs, msgs)
-        z_hat = transmit(channel_cfg, keys, t, z)[0]
+        z_hat = transmit(channel_cfg, step_dither(channel_cfg, keys, t, k), z)[0]
         msgs = deliver(z_hat)
         return (h, msgs, keys, t + 1), jnp.argmax(logits, -1)
 

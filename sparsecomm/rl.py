@@ -121,7 +121,7 @@ def make_train(config: RLConfig) -> Trainer:
             team, env, config.channel, params["actor"], key, config.num_envs, remat=config.remat
         )
         valid = traj.valid.astype(jnp.float32)
-        values = team.value(params["critic"], traj.states)
+        values = jax.lax.map(lambda s: team.value(params["critic"], s), traj.states)
         rewards = traj.rewards * config.reward_scale * valid[..., None]
         reinforced = config.channel.mode == "reinforced"
         if reinforced:  # RCL: each agent pays bit_cost per payload bit it sends

@@ -91,16 +91,49 @@ def recipients(num_agents: int) -> np.ndarray:
     return np.array([[j for j in range(num_agents) if j != i] for i in range(num_agents)])
 
 
-def transmit(cfg: ChannelConfig, keys: jax.Array, t: jax.Array, z: jax.Array):
+def step_dither(cfg: ChannelConfig, keys: jax.Array, t, num_agents: int):
+    """The dither of every link of a batch at step ``t``: (B, K, K-1, C), ``None`` unless the
+    channel quantizes. Link i -> j of episode b uses ``dither_key(keys[b], t, i, j)`` (SPEC
+    section 1), so its receiver can regenerate it alone."""
+    if cfg.mode != "discrete":
+        return None
+
+    def one_link(key, i, j):
+        return channel.dither(channel.dither_key(key, t, i, j), (cfg.num_elements,))
+
+    links = jax.vmap(jax.vmap(one_link, (None, None, 0)), (None, 0, 0))
+    senders, recv = jnp.arange(num_agents), jnp.asarray(recipients(num_agents))
+    return jax.vmap(lambda key: links(key, senders, recv))(keys)
+
+
+def link_dither(cfg: ChannelConfig, keys: jax.Array, num_steps: int, num_agents: int):
+    """:func:`step_dither` of every step, (T, B, K, K-1, C), in one vectorised draw: drawing
+    them before the time loop instead of inside it replaces many tiny random draws per step by
+    one large one (docs/benchmarks.md)."""
+    if cfg.mode != "discrete":
+        return None
+    if num_steps > 4096 or num_agents > 1024:
+        raise ValueError(
+            f"the dither keys support max_steps <= 4096 and num_agents <= 1024, got "
+            f"{num_steps} and {num_agents}"
+        )
+    return jax.vmap(lambda t: step_dither(cfg, keys, t, num_agents))(jnp.arange(num_steps))
+
+
+def transmit(cfg: ChannelConfig, u: jax.Array | None, z: jax.Array):
     """Send every link of a batch through the channel.
 
-    ``keys`` (B,) episode channel keys; ``z`` (B, K, K-1, C). Returns ``(z_hat, penalty (B,),
-    payload (B,), wire (B,), link_payload (B, K, K-1))``.
+    ``u`` (B, K, K-1, C) the links' dither (:func:`link_dither`, ``None`` unless the channel
+    quantizes); ``z`` (B, K, K-1, C). Returns ``(z_hat, penalty (B,), payload (B,), wire (B,),
+    link_payload (B, K, K-1))``.
     """
     b, k, r, c = z.shape
     zeros_b = jnp.zeros((b,), jnp.float32)
     if cfg.mode == "reinforced":
-        return transmit_reinforced(cfg, keys, t, z)[:5]
+        raise ValueError(
+            "ChannelConfig.mode 'reinforced' samples its symbols with the episode "
+            "keys: use transmit_reinforced(cfg, keys, t, z)"
+        )
     if cfg.mode == "off":
         z0 = jnp.zeros_like(z)
         return z0, zeros_b, zeros_b, zeros_b, jnp.zeros((b, k, r), jnp.float32)
@@ -108,14 +141,7 @@ def transmit(cfg: ChannelConfig, keys: jax.Array, t: jax.Array, z: jax.Array):
         link = jnp.full((b, k, r), 32.0 * c)
         total = jnp.full((b,), 32.0 * c * k * r)
         return z, zeros_b, total, total, link
-    recv = jnp.asarray(recipients(k))
-    senders = jnp.arange(k)
-
-    def one_link(key, i, j, z_link):
-        return channel.quantize(channel.dither_key(key, t, i, j), z_link, cfg.levels)
-
-    per_link = jax.vmap(jax.vmap(one_link, (None, None, 0, 0)), (None, 0, 0, 0))
-    m, z_hat = jax.vmap(per_link, (0, None, None, 0))(keys, senders, recv, z)
+    m, z_hat = channel.quantize_dithered(z, u, cfg.levels)
     code = cfg.code_obj
     link = channel.payload_bits(m, code).sum(-1).astype(jnp.float32)
     wire = channel.wire_bits(m, code).sum((-3, -2, -1)).astype(jnp.float32)
@@ -187,26 +213,37 @@ def rollout(
       keep_states: also return the environment states (for rendering and tests).
     """
     k = env.num_agents
-    k_reset, k_chan, k_steps = jax.random.split(key, 3)
+    num_steps = env.config.max_steps
+    k_reset, k_chan, k_act, k_env, k_exp, k_mix = jax.random.split(key, 6)
     obs, state = jax.vmap(env.reset)(jax.random.split(k_reset, num_envs))
-    chan_keys = jax.random.split(k_chan, num_envs)
     c = channel_cfg.num_elements
     msgs = jnp.zeros((num_envs, k, (k - 1) * c), jnp.float32)
     carry = team.initial_carry(num_envs)
     expert_carry = expert.init(num_envs) if expert is not None else None
+    # All the step's randomness is drawn before the loop, in a few large vectorised draws.
+    chan_keys = jax.random.split(k_chan, num_envs)
+    noise = {
+        "t": jnp.arange(num_steps),
+        "env": jax.random.split(k_env, (num_steps, num_envs)),
+        "gumbel": jax.random.gumbel(k_act, (num_steps, num_envs, k, team.num_actions)),
+        "dither": link_dither(channel_cfg, chan_keys, num_steps, k),
+    }
+    if expert is not None:
+        noise["expert"] = jax.random.split(k_exp, num_steps)
+        noise["mix"] = jax.random.uniform(k_mix, (num_steps, num_envs, 1))
 
-    def step(loop, t):
+    def step(loop, noise):
         state, obs, msgs, carry, expert_carry = loop
-        k_act, k_env, k_exp, k_mix = jax.random.split(jax.random.fold_in(k_steps, t), 4)
+        t = noise["t"]
         carry, logits, z = team.act(actor_params, carry, obs, msgs)
         log_probs = jax.nn.log_softmax(logits)
         if greedy:
             actions = jnp.argmax(logits, -1)
-        else:
-            actions = jax.random.categorical(k_act, jax.lax.stop_gradient(logits))
+        else:  # Gumbel-max: a sample of the categorical distribution of ``logits``
+            actions = jnp.argmax(jax.lax.stop_gradient(log_probs) + noise["gumbel"], -1)
         if expert is not None:
-            expert_carry, expert_actions = expert.step(expert_carry, k_exp, state, obs)
-            use_expert = jax.random.uniform(k_mix, (num_envs, 1)) < beta
+            expert_carry, expert_actions = expert.step(expert_carry, noise["expert"], state, obs)
+            use_expert = noise["mix"] < beta
             actions = jnp.where(use_expert, expert_actions, actions)
         else:
             expert_actions = jnp.full(actions.shape, -1)
@@ -215,13 +252,13 @@ def rollout(
                 channel_cfg, chan_keys, t, z
             )
         else:
-            z_hat, penalty, payload, wire, link = transmit(channel_cfg, chan_keys, t, z)
+            z_hat, penalty, payload, wire, link = transmit(channel_cfg, noise["dither"], z)
             msg_logp = jnp.zeros((num_envs, k), jnp.float32)
         next_msgs = deliver(z_hat)
         global_state = jax.vmap(env.global_state)(state)
         valid = ~state.done
         next_obs, next_state, rewards, dones, info = jax.vmap(env.step)(
-            jax.random.split(k_env, num_envs), state, actions
+            noise["env"], state, actions
         )
         full_link = jnp.zeros((num_envs, k, k), jnp.float32)
         full_link = full_link.at[:, jnp.arange(k)[:, None], jnp.asarray(recipients(k))].set(link)
@@ -246,7 +283,7 @@ def rollout(
     if remat:
         step = jax.checkpoint(step)
     init = (state, obs, msgs, carry, expert_carry)
-    _, traj = jax.lax.scan(step, init, jnp.arange(env.config.max_steps))
+    _, traj = jax.lax.scan(step, init, noise)
     return traj
 
 

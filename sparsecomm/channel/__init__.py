@@ -23,7 +23,13 @@ from sparsecomm.channel.codes import (
     wire_bits,
 )
 from sparsecomm.channel.penalty import bit_penalty
-from sparsecomm.channel.quantizer import dequantize, dither, dither_key, quantize
+from sparsecomm.channel.quantizer import (
+    dequantize,
+    dither,
+    dither_key,
+    quantize,
+    quantize_dithered,
+)
 
 __all__ = [
     "CODE_NAMES",
@@ -39,5 +45,6 @@ __all__ = [
     "paper_length",
     "payload_bits",
     "quantize",
+    "quantize_dithered",
     "wire_bits",
 ]
