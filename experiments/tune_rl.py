@@ -57,6 +57,19 @@ GRID = {
     "sep_g95": dict(lr=1e-3, num_envs=256, ent_coef=0.01, gamma=0.95),
     "sep_g90": dict(lr=1e-3, num_envs=256, ent_coef=0.01, gamma=0.9),
     "sep_g90_lr3e4": dict(lr=3e-4, num_envs=256, ent_coef=0.01, gamma=0.9),
+    # after hoisting the rollout's randomness out of the loop (new random streams)
+    "default": dict(),
+    "noadvnorm": dict(normalize_advantages=False),
+    "advnorm_b64": dict(normalize_advantages=True, num_envs=64),
+    "advnorm_b64_lr3e3": dict(normalize_advantages=True, num_envs=64, lr=3e-3),
+    "advnorm_b64_lr5e4": dict(normalize_advantages=True, num_envs=64, lr=5e-4),
+    "advnorm_b128": dict(normalize_advantages=True, num_envs=128),
+    "advnorm_b128_lr2e3": dict(normalize_advantages=True, num_envs=128, lr=2e-3),
+    "advnorm": dict(normalize_advantages=True),
+    "advnorm_lr3e4": dict(normalize_advantages=True, lr=3e-4),
+    "advnorm_b512": dict(normalize_advantages=True, num_envs=512),
+    "b512": dict(num_envs=512),
+    "advnorm_gae95": dict(normalize_advantages=True, gae_lambda=0.95),
     "nocomm_lr3e4_b256_ent": dict(
         lr=3e-4, num_envs=256, ent_coef=0.01, channel=ChannelConfig(mode="off")
     ),

@@ -70,6 +70,15 @@ def discounted_targets(rewards, values, dones, valid, gamma, gae_lambda):
     return adv, adv + values
 
 
+def normalize_per_agent(adv, valid, eps: float = 1e-8):
+    """Advantages (T, B, K) standardised per agent over the valid steps (invalid ones -> 0)."""
+    w = valid.astype(adv.dtype)[..., None]
+    n = jnp.maximum(w.sum((0, 1)), 1.0)
+    mean = (adv * w).sum((0, 1)) / n
+    var = (jnp.square(adv - mean) * w).sum((0, 1)) / n
+    return (adv - mean) / jnp.sqrt(var + eps) * w
+
+
 @dataclasses.dataclass(frozen=True)
 class Trainer:
     """The pure functions of one configuration (see the module docstring)."""
@@ -135,6 +144,8 @@ def make_train(config: RLConfig) -> Trainer:
             config.gamma,
             config.gae_lambda,
         )
+        if config.normalize_advantages:
+            adv = normalize_per_agent(adv, traj.valid)
         logp = jnp.take_along_axis(traj.log_probs, traj.actions[..., None], -1)[..., 0]
         if reinforced:  # the symbols sent are actions too, with the same advantage
             logp = logp + traj.msg_log_probs
