@@ -70,6 +70,8 @@ GRID = {
     "advnorm_b512": dict(normalize_advantages=True, num_envs=512),
     "b512": dict(num_envs=512),
     "advnorm_gae95": dict(normalize_advantages=True, gae_lambda=0.95),
+    "advnorm_ent03": dict(normalize_advantages=True, ent_coef=0.03),
+    "advnorm_gae95_ent03": dict(normalize_advantages=True, gae_lambda=0.95, ent_coef=0.03),
     "nocomm_lr3e4_b256_ent": dict(
         lr=3e-4, num_envs=256, ent_coef=0.01, channel=ChannelConfig(mode="off")
     ),
@@ -83,6 +85,12 @@ VMAP_FIELDS = ("lr", "max_grad_norm", "gamma", "gae_lambda", "ent_coef", "vf_coe
 these run as one program (``--vmap``), vmapped over configurations and seeds. The trainer is
 built inside the vmap with these fields set to traced scalars (bypassing RLConfig's checks,
 which ran on the concrete values)."""
+
+
+def seed_keys(seed: int, seeds: int):
+    """The keys ``sparsecomm train --seeds N`` uses (seed s: ``key(seed + s)``), so a tuning
+    seed is the same run as the CLI's seed. (Rounds 1-5 used ``split(key(seed), N)``.)"""
+    return jnp.stack([jax.random.key(seed + s) for s in range(seeds)])
 
 
 def static_part(cfg: RLConfig) -> RLConfig:
@@ -107,7 +115,7 @@ def run_vmapped(names, budget, seeds, every, out, max_wall):
     steps_per_update = base.num_envs * base.env.max_steps
     n_updates = int(budget // steps_per_update)
     chunk = max(1, int(every // steps_per_update))
-    keys = jax.random.split(jax.random.key(base.seed), seeds)
+    keys = seed_keys(base.seed, seeds)
     init = jax.jit(
         jax.vmap(jax.vmap(lambda h, k: trainer_of(h).init(k, 0.0), (None, 0)), (0, None))
     )
@@ -175,7 +183,7 @@ def run(name, overrides, budget, seeds, every, out):
     n_updates = int(budget // steps_per_update)
     chunk = max(1, int(every // steps_per_update))
     trainer = make_train(cfg)
-    keys = jax.random.split(jax.random.key(cfg.seed), seeds)
+    keys = seed_keys(cfg.seed, seeds)
     state = jax.jit(jax.vmap(trainer.init, (0, None)))(keys, 0.0)
     step = jax.jit(jax.vmap(lambda s: trainer.update_chunk(s, chunk)))
     t0 = time.time()

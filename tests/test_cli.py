@@ -21,7 +21,7 @@ TINY = [
 ]
 
 
-def test_train_eval_render(tmp_path):
+def test_train_eval_render(tmp_path, fast_compile):
     out = tmp_path / "run"
     main(["train", *TINY, "--seeds", "2", "--lams", "0", "0.01", "--out", str(out)])
     for name in ("metrics.csv", "results.json", "curves.png", "team.gif"):
@@ -54,7 +54,7 @@ def test_train_eval_render(tmp_path):
     assert frames.ndim == 4 and 2 <= frames.shape[0] <= 13
 
 
-def test_imitate_writes_imitation_loss(tmp_path):
+def test_imitate_writes_imitation_loss(tmp_path, fast_compile):
     out = tmp_path / "im"
     main(["imitate", *TINY, "--no-gif", "--no-tensorboard", "--out", str(out)])
     header = (out / "metrics.csv").read_text().splitlines()[0].split(",")

@@ -82,7 +82,7 @@ def test_learners_get_gradient_only_through_messages_from_others():
     assert sum(float(jnp.abs(x[1]).sum()) for x in jax.tree.leaves(g)) == 0
 
 
-def test_trained_team_can_be_the_expert(tmp_path):
+def test_trained_team_can_be_the_expert(tmp_path, fast_compile):
     from sparsecomm.cli import Train, train
     from sparsecomm.configs import RLConfig
 

@@ -65,7 +65,7 @@ def test_write_gif_roundtrip(episode, tmp_path):
     assert back.shape[0] == len(frames) and back.shape[1:3] == (64, 64)
 
 
-def test_cli_writes_gif(tmp_path):
+def test_cli_writes_gif(tmp_path, fast_compile):
     out = tmp_path / "oracle.gif"
     cmd = [sys.executable, "-m", "sparsecomm.envs.render", "--policy", "oracle"]
     cmd += ["--out", str(out), "--seed", "0", "--size", "96", "--stride", "2"]
