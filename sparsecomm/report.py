@@ -71,6 +71,20 @@ def smooth(x: np.ndarray, window: int) -> np.ndarray:
     return out
 
 
+def _save(fig, legend_ax, title: str | None, out_png: str | Path) -> Path:
+    """Legend on ``legend_ax``, optional title, tight layout; write the PNG and close."""
+    import matplotlib.pyplot as plt
+
+    legend_ax.legend(fontsize=8)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    out_png = Path(out_png)
+    fig.savefig(out_png, dpi=110)
+    plt.close(fig)
+    return out_png
+
+
 def plot_curves(
     csv_path: str | Path,
     out_png: str | Path,
@@ -97,14 +111,7 @@ def plot_curves(
         ax.set_xlabel("env steps")
         ax.set_title(metric.replace("_", " "))
         ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=8)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    out_png = Path(out_png)
-    fig.savefig(out_png, dpi=110)
-    plt.close(fig)
-    return out_png
+    return _save(fig, axes[0][0], title, out_png)
 
 
 def plot_pareto(points, out_png: str | Path, title: str | None = None) -> Path:
@@ -152,11 +159,4 @@ def plot_pareto(points, out_png: str | Path, title: str | None = None) -> Path:
         ax.set_xlabel("payload bits per step (team)")
         ax.set_title(metric.replace("_", " "))
         ax.grid(alpha=0.3)
-    axes[0].legend(fontsize=8)
-    if title:
-        fig.suptitle(title)
-    fig.tight_layout()
-    out_png = Path(out_png)
-    fig.savefig(out_png, dpi=110)
-    plt.close(fig)
-    return out_png
+    return _save(fig, axes[0], title, out_png)
