@@ -1,14 +1,14 @@
 """Shared fixtures."""
 
-import jax
 import pytest
+
+from sparsecomm.reproduce import _fast_compile
 
 
 @pytest.fixture
 def fast_compile():
-    """Compile with most XLA optimisations off: for end-to-end tests with tiny budgets, whose
-    time goes to compiling several programs, not to running them."""
-    previous = bool(jax.config._read("jax_disable_most_optimizations"))
-    jax.config.update("jax_disable_most_optimizations", True)
+    """Compile with most XLA optimisations off (the switch ``reproduce --quick`` uses): for
+    end-to-end tests with tiny budgets, whose time goes to compiling, not to running."""
+    previous = _fast_compile(True)
     yield
-    jax.config.update("jax_disable_most_optimizations", previous)
+    _fast_compile(previous)
