@@ -42,8 +42,8 @@ class ChannelConfig:
     """``reinforced`` mode only: reward subtracted from agent i at step t per payload bit it
     sends (paper reward units, scaled by ``reward_scale`` like the task reward; not included in
     the logged group reward). Neither the paper nor SPEC gives a value; ours: 0 (no cost), and
-    ``sparsecomm reproduce`` uses 0.1, the surrogate penalty's price per bit at lambda = 0.001
-    (lambda / reward_scale)."""
+    ``sparsecomm reproduce`` uses 0.001, the price per bit that the surrogate penalty sets at
+    lambda = 0.001 (lambda is in the same units, see ``sparsecomm.rl``)."""
 
     def __post_init__(self):
         if self.mode not in CHANNEL_MODES:

@@ -99,10 +99,10 @@ class Reproduce:
     """RL penalty weights. Paper: 0.01, 0.005, 0.001, 0."""
     il_lams: tuple[float, ...] = IL_LAMS
     """Imitation penalty weights. Paper: 0.001, 0.0007, 0.0004, 0.0001 (and 0 here)."""
-    rcl_bit_cost: float = 0.1
+    rcl_bit_cost: float = 0.001
     """RCL's reward per payload bit sent, negated (paper reward units). The paper gives none.
-    ours: 0.1 = lambda / reward_scale at lambda = 0.001, the same price per bit in scaled reward
-    units that the surrogate penalty puts on a bit at the middle RL lambda."""
+    ours: 0.001, the price per bit that the surrogate penalty sets at the smallest non-zero RL
+    lambda (lambda is a price per bit in the same units, see ``sparsecomm.rl``)."""
     rl: RLConfig = RLConfig()
     """The RL learner (sweep and baselines; each baseline changes only its channel)."""
     il: ILConfig = ILConfig()
@@ -202,15 +202,19 @@ def _fast_compile(on: bool) -> bool:
 
 
 def _git_commit() -> str | None:
-    try:
+    """The short commit of the code, with ``+changes`` if tracked files differ from it."""
+
+    def git(*args: str) -> str:
         out = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            capture_output=True,
-            text=True,
-            cwd=Path(__file__).parent,
-            timeout=10,
+            ["git", *args], capture_output=True, text=True, cwd=Path(__file__).parent, timeout=10
         )
-        return out.stdout.strip() or None
+        return out.stdout.strip()
+
+    try:
+        commit = git("rev-parse", "--short", "HEAD")
+        if commit and git("status", "--porcelain", "--untracked-files=no"):
+            commit += "+changes"
+        return commit or None
     except (OSError, subprocess.SubprocessError):
         return None
 
@@ -450,8 +454,8 @@ def write_figures(out: Path, summary: dict) -> list[Path]:
 
 def _hardware_lines(timings: dict) -> list[str]:
     lines = [
-        "| part | wall-clock | CPU | cores (usable) | device | jax | finished |",
-        "|---|---:|---|---|---|---|---|",
+        "| part | wall-clock | CPU | cores (usable) | device | jax | commit | finished |",
+        "|---|---:|---|---|---|---|---|---|",
     ]
     for part in PARTS:
         t = timings.get(part)
@@ -461,7 +465,7 @@ def _hardware_lines(timings: dict) -> list[str]:
         lines.append(
             f"| {part} | {t['wall_clock_s']:.0f} s | {h['cpu']} | {h['cpu_cores']} "
             f"({h['usable_cores']}) | {h['device_kind']} x{h['devices']} | {h['jax']} | "
-            f"{t['finished']} |"
+            f"{t.get('commit') or '?'} | {t['finished']} |"
         )
     return lines
 
@@ -499,7 +503,7 @@ def write_report(out: Path, command: str = "") -> dict:
         md += [f"Invoked as: `{command}`", ""]
     commit = _git_commit()
     if commit:
-        md += [f"Code: commit `{commit}`.", ""]
+        md += [f"Report written at commit `{commit}` (each part's: hardware table).", ""]
     quick = timings.get("_meta", {}).get("quick")
     if quick:
         md += [
@@ -571,6 +575,7 @@ def reproduce(args: Reproduce) -> dict:
                 "budget": budget,
                 "hardware": hardware(),
                 "fast_compile": fast,
+                "commit": _git_commit(),
                 "finished": datetime.datetime.now().isoformat(timespec="seconds"),
             }
             timings_path.write_text(json.dumps(timings, indent=2))

@@ -6,12 +6,15 @@ one gradient step on
     loss = mean over valid steps of  sum_i [ -log pi_i(a_t | o_<=t) * A_i,t
                                              + vf_coef * (V_i(S_t) - G_i,t)^2
                                              - ent_coef * H(pi_i) ]
-                                     + lam * sum_{i, j != i, c} log2(|M| z_t^{i->j}[c] + 1)
+                                     + w * sum_{i, j != i, c} log2(|M| z_t^{i->j}[c] + 1)
 
 with ``G`` the Monte-Carlo returns of the scaled rewards (``gae_lambda = 1``, paper eq. 5) or GAE
-targets, and ``A = G - V(S_t)`` held constant. The gradient of the whole expression is taken
-through the episode: through every agent's GRU and through the channel from every receiver's
-log-probabilities into every sender's parameters.
+targets, and ``A = G - V(S_t)`` held constant (standardised per agent by default). The penalty
+weight ``w = lam * reward_scale / std(A)`` (``/ std(A)`` only when advantages are standardised)
+makes this the gradient of the paper's objective ``E[sum_t gamma^t r_t] - lam E[sum_t penalty_t]``
+up to one positive factor: ``lam`` is the price of one bit in the paper's reward units. The
+gradient of the whole expression is taken through the episode: through every agent's GRU and
+through the channel from every receiver's log-probabilities into every sender's parameters.
 
 ``make_train(config)`` returns pure functions. ``train(key, lam)`` runs the whole loop as one
 compiled program, so ``vmap`` over seeds and lambdas gives a sweep for free; ``init`` and
@@ -71,12 +74,15 @@ def discounted_targets(rewards, values, dones, valid, gamma, gae_lambda):
 
 
 def normalize_per_agent(adv, valid, eps: float = 1e-8):
-    """Advantages (T, B, K) standardised per agent over the valid steps (invalid ones -> 0)."""
+    """Advantages (T, B, K) standardised per agent over the valid steps (invalid ones -> 0).
+
+    Returns the standardised advantages and the per-agent standard deviations (K,).
+    """
     w = valid.astype(adv.dtype)[..., None]
     n = jnp.maximum(w.sum((0, 1)), 1.0)
     mean = (adv * w).sum((0, 1)) / n
-    var = (jnp.square(adv - mean) * w).sum((0, 1)) / n
-    return (adv - mean) / jnp.sqrt(var + eps) * w
+    std = jnp.sqrt((jnp.square(adv - mean) * w).sum((0, 1)) / n + eps)
+    return (adv - mean) / std * w, std
 
 
 @dataclasses.dataclass(frozen=True)
@@ -144,8 +150,13 @@ def make_train(config: RLConfig) -> Trainer:
             config.gamma,
             config.gae_lambda,
         )
+        # lam prices a bit in the paper's reward units (SPEC 3: J = E[sum_t gamma^t r_t]
+        # - lam E[sum_t penalty_t]), so the penalty is scaled exactly as the policy-gradient term:
+        # by reward_scale, and by 1 / std of the advantages when they are standardised.
+        penalty_weight = lam * config.reward_scale
         if config.normalize_advantages:
-            adv = normalize_per_agent(adv, traj.valid)
+            adv, adv_std = normalize_per_agent(adv, traj.valid)
+            penalty_weight = penalty_weight / jax.lax.stop_gradient(adv_std.mean())
         logp = jnp.take_along_axis(traj.log_probs, traj.actions[..., None], -1)[..., 0]
         if reinforced:  # the symbols sent are actions too, with the same advantage
             logp = logp + traj.msg_log_probs
@@ -161,7 +172,7 @@ def make_train(config: RLConfig) -> Trainer:
             mean(pg)
             + config.vf_coef * mean(value_loss)
             - config.ent_coef * mean(entropy.sum(-1))
-            + lam * mean(traj.penalty)
+            + penalty_weight * mean(traj.penalty)
         )
         metrics = episode_metrics(traj)
         metrics.update(
@@ -169,6 +180,7 @@ def make_train(config: RLConfig) -> Trainer:
             policy_loss=mean(pg),
             value_loss=mean(value_loss),
             entropy=mean(entropy.mean(-1)),
+            penalty_weight=penalty_weight,
         )
         return loss, metrics
 

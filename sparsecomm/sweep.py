@@ -141,6 +141,10 @@ def run_sweep(
     csv_path = out / "metrics.csv"
     if resume and checkpoint.exists(ckpt):
         old = checkpoint.load_meta(ckpt)
+        # The training budget may grow: no learner's update depends on ``num_updates``, so a run
+        # extended from its checkpoint equals one started with the larger budget.
+        if isinstance(old.get("config"), dict):
+            old["config"] = {**old["config"], "num_updates": meta["config"].get("num_updates")}
         for field in ("kind", "config", "seeds", "lams", "chunk"):
             if old.get(field) != meta[field]:
                 raise ValueError(

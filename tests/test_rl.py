@@ -121,6 +121,12 @@ def test_resume_gives_same_parameters_as_uninterrupted_run(tmp_path):
         np.testing.assert_array_equal(x, y)
     rows_a = (tmp_path / "a" / "metrics.csv").read_text()
     assert rows_a == (tmp_path / "b" / "metrics.csv").read_text()
+    # A longer budget extends a finished run: the same parameters as one started with it.
+    longer = dataclasses.replace(TINY, num_updates=TINY.num_updates + 2)
+    run_sweep(tr, TINY, spec, tmp_path / "c", num_updates=2, **kw)
+    extended, _ = run_sweep(tr, longer, spec, tmp_path / "c", num_updates=4, **kw)
+    for x, y in zip(jax.tree.leaves(full.params), jax.tree.leaves(extended.params), strict=True):
+        np.testing.assert_array_equal(x, y)
     # The checkpoint is msgpack + JSON (no pickle) and a different config refuses to resume.
     assert checkpoint.load_meta(tmp_path / "b" / "checkpoint")["lams"] == [0.0, 0.01]
     other = dataclasses.replace(TINY, lr=0.5)
