@@ -27,6 +27,7 @@ from sparsecomm import channel
 from sparsecomm.agents import Team
 from sparsecomm.configs import ChannelConfig
 from sparsecomm.envs.navigation import NavigationEnv
+from sparsecomm.sharding import split_episodes
 
 
 @struct.dataclass
@@ -231,6 +232,12 @@ def rollout(
     if expert is not None:
         noise["expert"] = jax.random.split(k_exp, num_steps)
         noise["mix"] = jax.random.uniform(k_mix, (num_steps, num_envs, 1))
+    # Episodes are independent: split them over the mesh's episodes axis, if there is one.
+    batched = ("env", "gumbel", "dither", "mix")
+    noise.update(split_episodes({n: v for n, v in noise.items() if n in batched}, axis=1))
+    state, obs, msgs, carry, chan_keys = split_episodes(
+        (state, obs, msgs, carry, chan_keys), axis=0
+    )
 
     def step(loop, noise):
         state, obs, msgs, carry, expert_carry = loop

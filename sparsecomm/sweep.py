@@ -24,6 +24,7 @@ from tqdm import tqdm
 
 from sparsecomm import checkpoint
 from sparsecomm.configs import to_dict
+from sparsecomm.sharding import RUNS, make_mesh, place_runs, use_mesh
 
 FIRST_COLUMNS = ["seed", "lam", "update", "env_steps", "episodes"]
 METRIC_ORDER = [
@@ -74,26 +75,17 @@ def _truncate_csv(path: Path, max_update: int) -> None:
         csv.writer(f).writerows(keep)
 
 
-def shard_runs(tree, num_runs: int, devices=None):
-    """Place the run axis (axis 0 of every leaf) across local devices with ``jax.sharding``.
-
-    Runs are independent, so the vmapped update partitions along them with no communication.
-    With one device, or a run count that does not divide evenly, the tree stays where it is.
-    Under ``jax.distributed`` (multi-host), pass ``jax.devices()`` to span every host.
-    """
-    devices = jax.local_devices() if devices is None else devices
-    if len(devices) == 1 or num_runs % len(devices):
-        return tree
-    mesh = jax.sharding.Mesh(np.asarray(devices), ("runs",))
-    spec = jax.sharding.PartitionSpec("runs")
-    return jax.device_put(tree, jax.sharding.NamedSharding(mesh, spec))
-
-
 @functools.lru_cache(maxsize=16)
-def _compiled(learner):
-    """The learner's vmapped, jitted ``init`` and ``update_chunk`` (compiled once per learner)."""
-    init = jax.jit(jax.vmap(learner.init))
-    steps = jax.jit(jax.vmap(learner.update_chunk, (0, None)), static_argnums=1)
+def _compiled(learner, sharded: bool):
+    """The learner's vmapped, jitted ``init`` and ``update_chunk`` (compiled once per learner).
+
+    ``sharded``: the run axis is the mesh's ``runs`` axis (for the rollout's episode split).
+    """
+    spmd = RUNS if sharded else None
+    init = jax.jit(jax.vmap(learner.init, spmd_axis_name=spmd))
+    steps = jax.jit(
+        jax.vmap(learner.update_chunk, (0, None), spmd_axis_name=spmd), static_argnums=1
+    )
     return init, steps
 
 
@@ -117,17 +109,19 @@ def run_sweep(
 ):
     """Run (or resume) a sweep; returns the final batched state and the run list.
 
-    The runs are split over ``devices`` (default: all local devices) when their number divides
-    evenly (:func:`shard_runs`); pass ``[jax.devices()[0]]`` to keep everything on one device.
+    The runs, and each run's ``episodes_per_update`` episodes, are split over ``devices``
+    (default: all local devices; :func:`sparsecomm.sharding.make_mesh`); pass
+    ``[jax.devices()[0]]`` to keep everything on one device.
     """
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     runs = spec.runs()
     keys = jnp.stack([jax.random.key(config.seed + s) for s, _ in runs])
     lams = jnp.asarray([lam for _, lam in runs], jnp.float32)
-    init, steps = _compiled(learner)
-    keys, lams = shard_runs((keys, lams), len(runs), devices)
-    state = init(keys, lams)
+    mesh = make_mesh(len(runs), episodes_per_update, devices)
+    init, steps = _compiled(learner, mesh is not None)
+    with use_mesh(mesh):
+        state = init(*place_runs((keys, lams), mesh))
     meta = {
         "kind": kind,
         "config": to_dict(config),
@@ -151,7 +145,7 @@ def run_sweep(
                     f"cannot resume from {ckpt}: its {field} differs from this run's "
                     f"(use a new --out folder or --no-resume)"
                 )
-        state = shard_runs(checkpoint.load(ckpt, state), len(runs), devices)
+        state = place_runs(checkpoint.load(ckpt, state), mesh)
         start = int(np.asarray(state.update).max())
         _truncate_csv(csv_path, start)
     elif csv_path.exists():
@@ -177,7 +171,8 @@ def run_sweep(
         w = csv.writer(f)
         while done < num_updates:
             n = min(chunk, num_updates - done)
-            state, metrics = steps(state, n)
+            with use_mesh(mesh):
+                state, metrics = steps(state, n)
             metrics = {k: np.asarray(v) for k, v in metrics.items()}  # (runs, n)
             names = _row_metrics(metrics)
             if not header_written:

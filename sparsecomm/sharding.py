@@ -1,0 +1,73 @@
+"""Scale-out with ``jax.sharding``: the runs of a sweep and the episodes of a run over devices.
+
+A sweep is a batch of independent runs (seeds x lambdas), and every run's update plays a batch of
+independent episodes. :func:`make_mesh` lays the devices out as a 2-D mesh ``(runs, episodes)``:
+runs are split over the first axis, each run's episodes over the second, and a run's parameters
+are replicated along it. :func:`place_runs` puts the batched training state on the mesh, and
+:func:`split_episodes` (called by the rollout on its batch axis) tells XLA to partition the
+episodes. XLA's SPMD partitioner then inserts the one collective this needs: the sum of each
+run's gradients over its episode shards. Nothing else is exchanged, so the results equal a
+single-device run up to float summation order.
+
+Multi-host: start every process with ``jax.distributed.initialize()`` and pass
+``devices=jax.devices()`` (all hosts' devices) to :func:`sparsecomm.sweep.run_sweep`. The mesh
+then spans hosts; ``run_sweep``'s logging and checkpoints read the metrics and state on the
+calling process, which is written for one host and untested across several.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from collections.abc import Sequence
+
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+RUNS = "runs"
+"""Mesh axis over which the runs of a sweep are split."""
+EPISODES = "episodes"
+"""Mesh axis over which each run's parallel episodes are split."""
+
+
+def make_mesh(num_runs: int, num_envs: int, devices: Sequence | None = None) -> Mesh | None:
+    """A ``(runs, episodes)`` mesh over ``devices`` (default: all local devices), or None.
+
+    The runs axis takes the largest device count that divides ``num_runs``; the episodes axis
+    takes the largest share of the remaining factor that divides ``num_envs``. Devices that fit
+    neither stay idle; with one device (or nothing to split) the result is None.
+    """
+    devices = list(jax.local_devices() if devices is None else devices)
+    runs = math.gcd(num_runs, len(devices))
+    episodes = math.gcd(len(devices) // runs, num_envs)
+    if runs * episodes == 1:
+        return None
+    grid = np.asarray(devices[: runs * episodes], dtype=object).reshape(runs, episodes)
+    return Mesh(grid, (RUNS, EPISODES))
+
+
+def place_runs(tree, mesh: Mesh | None):
+    """Put a batched state (runs on axis 0 of every leaf) on ``mesh``, replicated over episodes."""
+    if mesh is None:
+        return tree
+    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec(RUNS)))
+
+
+def use_mesh(mesh: Mesh | None):
+    """Context in which :func:`split_episodes` sees ``mesh`` (nothing when it is None)."""
+    return jax.set_mesh(mesh) if mesh is not None else contextlib.nullcontext()
+
+
+def split_episodes(tree, axis: int):
+    """Constrain axis ``axis`` (the episode batch) of every leaf to the mesh's episodes axis.
+
+    A no-op outside :func:`use_mesh` or when the mesh does not split episodes, so the rollout
+    calls it unconditionally. Under ``vmap(..., spmd_axis_name=RUNS)`` the vmapped run axis is
+    added to the constraint by JAX.
+    """
+    mesh = jax.sharding.get_abstract_mesh()
+    if mesh.empty or EPISODES not in mesh.axis_names or mesh.shape[EPISODES] == 1:
+        return tree
+    spec = PartitionSpec(*([None] * axis), EPISODES)
+    return jax.tree.map(lambda x: jax.lax.with_sharding_constraint(x, spec), tree)
