@@ -11,7 +11,6 @@ from sparsecomm.configs import ChannelConfig, ILConfig
 from sparsecomm.envs.navigation import NavConfig
 from sparsecomm.envs.oracle import oracle_actions
 from sparsecomm.imitation import make_imitate
-from sparsecomm.rl import make_train
 from sparsecomm.rollout import rollout
 
 TINY = ILConfig(env=NavConfig(max_steps=16), num_envs=4, num_updates=2)
@@ -102,9 +101,17 @@ def test_trained_team_can_be_the_expert(tmp_path, fast_compile):
     im = make_imitate(cfg)
     state, m = jax.jit(im.train)(jax.random.key(0), 0.0)
     assert np.all(np.isfinite(m["imitation_loss"]))
-    # The expert's labels are the trained team's greedy actions (checked on one step).
-    tr = make_train(rl)
-    assert im.team.num_agents == tr.team.num_agents
+    # The expert's labels are the trained team's greedy actions (checked on the first step,
+    # where the team's memory and messages are zeros).
+    from sparsecomm.cli import load_run
+
+    _, tr, _, rl_state = load_run(tmp_path / "rl")
+    params = jax.tree.map(lambda x: x[0], rl_state.params["actor"])
+    obs, env_state = jax.vmap(im.env.reset)(jax.random.split(jax.random.key(3), 16))
+    _, labels = im.expert.step(im.expert.init(16), None, env_state, obs)
+    msgs = jnp.zeros((16, 3, 2 * cfg.channel.num_elements))
+    _, logits, _ = tr.team.act(params, tr.team.initial_carry(16), obs, msgs)
+    np.testing.assert_array_equal(np.asarray(labels), np.asarray(jnp.argmax(logits, -1)))
     with pytest.raises(ValueError, match="expert_checkpoint"):
         ILConfig(expert="checkpoint")
 
