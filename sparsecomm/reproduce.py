@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import datetime
+import hashlib
 import json
 import os
 import platform
@@ -199,6 +200,16 @@ def _fast_compile(on: bool) -> bool:
         previous = False
     jax.config.update("jax_disable_most_optimizations", on)
     return previous
+
+
+def _source_digest() -> str:
+    """SHA-256 (first 16 hex digits) of the package's Python sources, in path order: names the
+    code that ran even where the git metadata is missing or stale."""
+    root = Path(__file__).parent
+    h = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        h.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
+    return h.hexdigest()[:16]
 
 
 def _git_commit() -> str | None:
@@ -576,6 +587,7 @@ def reproduce(args: Reproduce) -> dict:
                 "hardware": hardware(),
                 "fast_compile": fast,
                 "commit": _git_commit(),
+                "source_sha256": _source_digest(),
                 "finished": datetime.datetime.now().isoformat(timespec="seconds"),
             }
             timings_path.write_text(json.dumps(timings, indent=2))

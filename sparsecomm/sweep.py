@@ -204,7 +204,10 @@ def run_sweep(
             chunks += 1
             last = {k: float(metrics[k][:, -1].mean()) for k in METRIC_ORDER if k in metrics}
             bar.update(n)
-            sps = (done - start) * episodes_per_update * steps_per_episode / (time.time() - t0)
+            # env steps per second of the whole sweep (all runs), compilation included
+            sps = ((done - start) * len(runs) * episodes_per_update * steps_per_episode) / (
+                time.time() - t0
+            )
             bar.set_postfix(
                 succ=f"{last.get('success_rate', 0):.2f}",
                 len=f"{last.get('episode_length', 0):.0f}",

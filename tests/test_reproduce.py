@@ -6,7 +6,7 @@ import pytest
 
 from sparsecomm import report_md
 from sparsecomm.cli import main
-from sparsecomm.reproduce import IL_LAMS, PARTS, RL_LAMS, Reproduce
+from sparsecomm.reproduce import IL_LAMS, PARTS, RL_LAMS, Reproduce, _source_digest
 
 TINY = [
     "--quick",
@@ -57,6 +57,7 @@ def test_quick_writes_every_artefact(quick_run):
     assert set(PARTS) <= set(timings)
     assert timings["rl"]["budget"]["env_steps_per_run"] == 2 * 2 * 12
     assert timings["rl"]["hardware"]["cpu_cores"] >= 1
+    assert timings["rl"]["source_sha256"] == _source_digest() and len(_source_digest()) == 16
 
 
 def test_report_decides_every_claim(quick_run):
