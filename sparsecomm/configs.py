@@ -118,6 +118,14 @@ class RLConfig:
     without it the mean plateaued near 0.5."""
     vf_coef: float = 0.5
     """Weight of the critic's squared-error loss. ours."""
+    penalty_delay: int = 0
+    """Updates at the start of training without the bit penalty; then its weight grows linearly
+    to lambda over ``penalty_ramp`` updates. ours: 0, the paper's objective from the first update
+    (the paper mentions no schedule). docs/reproduce.md: with lambda >= 0.03 the penalty silences
+    the channel before the team has learned to use it."""
+    penalty_ramp: int = 0
+    """Updates over which the penalty weight grows from 0 to lambda after ``penalty_delay``
+    (0: at once). ours: 0."""
     reward_scale: float = 0.01
     """Rewards are multiplied by this for learning (logs stay in the paper's units). SPEC
     calibration: 1/100."""
@@ -137,6 +145,8 @@ class RLConfig:
             "gae_lambda": (0 <= self.gae_lambda <= 1, "in [0, 1]"),
             "ent_coef": (self.ent_coef >= 0, ">= 0"),
             "vf_coef": (self.vf_coef >= 0, ">= 0"),
+            "penalty_delay": (self.penalty_delay >= 0, ">= 0"),
+            "penalty_ramp": (self.penalty_ramp >= 0, ">= 0"),
             "reward_scale": (self.reward_scale > 0, "> 0"),
         }
         for name, (ok, allowed) in checks.items():

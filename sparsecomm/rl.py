@@ -12,7 +12,8 @@ with ``G`` the Monte-Carlo returns of the scaled rewards (``gae_lambda = 1``, pa
 targets, and ``A = G - V(S_t)`` held constant (standardised per agent by default). The penalty
 weight ``w = lam * reward_scale / std(A)`` (``/ std(A)`` only when advantages are standardised)
 makes this the gradient of the paper's objective ``E[sum_t gamma^t r_t] - lam E[sum_t penalty_t]``
-up to one positive factor: ``lam`` is the price of one bit in the paper's reward units. The
+up to one positive factor: ``lam`` is the price of one bit in the paper's reward units
+(optionally switched on late, ``RLConfig.penalty_delay`` and ``penalty_ramp``). The
 gradient of the whole expression is taken through the episode: through every agent's GRU and
 through the channel from every receiver's log-probabilities into every sender's parameters.
 
@@ -73,6 +74,14 @@ def discounted_targets(rewards, values, dones, valid, gamma, gae_lambda):
     return adv, adv + values
 
 
+def penalty_schedule(update, delay: int, ramp: int):
+    """Factor on the penalty weight at 0-based ``update``: 0 before ``delay``, then a linear
+    ramp to 1 over ``ramp`` updates (1 at once if ``ramp`` is 0)."""
+    if ramp == 0:
+        return (update >= delay).astype(jnp.float32)
+    return jnp.clip((update - delay + 1) / ramp, 0.0, 1.0)
+
+
 def normalize_per_agent(adv, valid, eps: float = 1e-8):
     """Advantages (T, B, K) standardised per agent over the valid steps (invalid ones -> 0).
 
@@ -131,7 +140,7 @@ def make_train(config: RLConfig) -> Trainer:
             params, tx.init(params), k_run, jnp.zeros((), jnp.int32), jnp.asarray(lam, jnp.float32)
         )
 
-    def loss_fn(params, key, lam):
+    def loss_fn(params, key, lam, update):
         traj: Trajectory = rollout(
             team, env, config.channel, params["actor"], key, config.num_envs, remat=config.remat
         )
@@ -154,6 +163,7 @@ def make_train(config: RLConfig) -> Trainer:
         # - lam E[sum_t penalty_t]), so the penalty is scaled exactly as the policy-gradient term:
         # by reward_scale, and by 1 / std of the advantages when they are standardised.
         penalty_weight = lam * config.reward_scale
+        penalty_weight *= penalty_schedule(update, config.penalty_delay, config.penalty_ramp)
         if config.normalize_advantages:
             adv, adv_std = normalize_per_agent(adv, traj.valid)
             penalty_weight = penalty_weight / jax.lax.stop_gradient(adv_std.mean())
@@ -186,7 +196,9 @@ def make_train(config: RLConfig) -> Trainer:
 
     def update(state: TrainState):
         key, k_roll = jax.random.split(state.key)
-        grads, metrics = jax.grad(loss_fn, has_aux=True)(state.params, k_roll, state.lam)
+        grads, metrics = jax.grad(loss_fn, has_aux=True)(
+            state.params, k_roll, state.lam, state.update
+        )
         updates, opt_state = tx.update(clip_parts(grads), state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         metrics["actor_grad_norm"] = optax.tree.norm(grads["actor"])

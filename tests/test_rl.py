@@ -10,7 +10,7 @@ import pytest
 from sparsecomm import checkpoint
 from sparsecomm.configs import ChannelConfig, RLConfig
 from sparsecomm.envs.navigation import NavConfig
-from sparsecomm.rl import discounted_targets, make_train
+from sparsecomm.rl import discounted_targets, make_train, penalty_schedule
 from sparsecomm.rollout import link_tables, rollout
 from sparsecomm.sweep import SweepSpec, run_sweep
 
@@ -101,6 +101,18 @@ def test_lambda_lowers_bits():
     _, m = jax.jit(jax.vmap(tr.train, (None, 0)))(jax.random.key(0), jnp.array([0.0, 1.0]))
     bits = np.asarray(m["bits_per_step"])[:, -5:].mean(1)
     assert bits[1] < 0.5 * bits[0]
+
+
+def test_penalty_schedule_delays_and_ramps_the_weight():
+    def f(u, delay, ramp):
+        return float(penalty_schedule(jnp.asarray(u), delay, ramp))
+
+    assert f(0, 0, 0) == 1.0 and f(4, 5, 0) == 0.0 and f(5, 5, 0) == 1.0
+    assert [f(u, 2, 4) for u in range(8)] == [0, 0, 0.25, 0.5, 0.75, 1, 1, 1]
+    cfg = dataclasses.replace(TINY, penalty_delay=2)
+    _, m = jax.jit(make_train(cfg).train)(jax.random.key(0), 1.0)
+    w = np.asarray(m["penalty_weight"])
+    assert w[0] == w[1] == 0.0 and w[2] > 0.0
 
 
 def test_resume_gives_same_parameters_as_uninterrupted_run(tmp_path):
