@@ -13,12 +13,9 @@ import os
 from pathlib import Path
 
 import jax
-import numpy as np
 from flax import serialization
 
-
-def _is_key(x) -> bool:
-    return isinstance(x, jax.Array) and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
+from sparsecomm.sharding import is_key, to_host
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
@@ -31,11 +28,16 @@ def _atomic_write(path: Path, data: bytes) -> None:
 
 
 def save(folder: str | os.PathLike, state, meta: dict) -> None:
-    """Save a pytree ``state`` (PRNG keys stored as their raw data) and JSON ``meta``."""
+    """Save a pytree ``state`` (PRNG keys stored as their raw data) and JSON ``meta``.
+
+    Under ``jax.distributed`` every process must call it (the state is gathered); process 0
+    writes.
+    """
+    raw = to_host(state)
+    if jax.process_index() != 0:
+        return
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    raw = jax.tree.map(lambda x: jax.random.key_data(x) if _is_key(x) else x, state)
-    raw = jax.tree.map(np.asarray, raw)
     _atomic_write(folder / "state.msgpack", serialization.to_bytes(raw))
     _atomic_write(folder / "config.json", json.dumps(meta, indent=2).encode())
 
@@ -52,10 +54,10 @@ def load(folder: str | os.PathLike, template):
     path = Path(folder) / "state.msgpack"
     if not path.exists():
         raise FileNotFoundError(f"no checkpoint in {folder} (missing {path.name})")
-    raw_template = jax.tree.map(lambda x: jax.random.key_data(x) if _is_key(x) else x, template)
+    raw_template = jax.tree.map(lambda x: jax.random.key_data(x) if is_key(x) else x, template)
     raw = serialization.from_bytes(raw_template, path.read_bytes())
     return jax.tree.map(
-        lambda t, r: jax.random.wrap_key_data(r) if _is_key(t) else jax.numpy.asarray(r),
+        lambda t, r: jax.random.wrap_key_data(r) if is_key(t) else jax.numpy.asarray(r),
         template,
         raw,
     )

@@ -10,9 +10,10 @@ run's gradients over its episode shards. Nothing else is exchanged, so the resul
 single-device run up to float summation order.
 
 Multi-host: start every process with ``jax.distributed.initialize()`` and pass
-``devices=jax.devices()`` (all hosts' devices) to :func:`sparsecomm.sweep.run_sweep`. The mesh
-then spans hosts; ``run_sweep``'s logging and checkpoints read the metrics and state on the
-calling process, which is written for one host and untested across several.
+``devices=jax.devices()`` (all hosts' devices) to :func:`sparsecomm.sweep.run_sweep` in every
+process. The mesh then spans hosts; :func:`place_runs` builds the global arrays from each
+process's copy, :func:`to_host` gathers metrics and state to every process, and only process 0
+writes logs and checkpoints (tested with 2 CPU processes, ``tests/test_sharding.py``).
 """
 
 from __future__ import annotations
@@ -47,11 +48,42 @@ def make_mesh(num_runs: int, num_envs: int, devices: Sequence | None = None) -> 
     return Mesh(grid, (RUNS, EPISODES))
 
 
+def is_key(x) -> bool:
+    """Whether ``x`` is a typed PRNG key array."""
+    return isinstance(x, jax.Array) and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
+
+
 def place_runs(tree, mesh: Mesh | None):
-    """Put a batched state (runs on axis 0 of every leaf) on ``mesh``, replicated over episodes."""
+    """Put a batched state (runs on axis 0 of every leaf) on ``mesh``, replicated over episodes.
+
+    Every process passes the same full values; on several hosts each one keeps its own shards.
+    """
     if mesh is None:
         return tree
-    return jax.device_put(tree, NamedSharding(mesh, PartitionSpec(RUNS)))
+    sharding = NamedSharding(mesh, PartitionSpec(RUNS))
+    if jax.process_count() == 1:
+        return jax.device_put(tree, sharding)
+
+    def put(x):
+        if is_key(x):
+            return jax.random.wrap_key_data(put(jax.random.key_data(x)))
+        host = np.asarray(x)
+        return jax.make_array_from_callback(host.shape, sharding, lambda idx: host[idx])
+
+    return jax.tree.map(put, tree)
+
+
+def to_host(tree):
+    """Every leaf as a full numpy array on this process (PRNG keys as their raw data).
+
+    On several hosts this gathers the shards of all processes: every process must call it.
+    """
+    raw = jax.tree.map(lambda x: jax.random.key_data(x) if is_key(x) else x, tree)
+    if jax.process_count() == 1:
+        return jax.tree.map(np.asarray, raw)
+    from jax.experimental import multihost_utils
+
+    return multihost_utils.process_allgather(raw, tiled=True)
 
 
 def use_mesh(mesh: Mesh | None):

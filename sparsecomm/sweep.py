@@ -10,6 +10,7 @@ dies resumes from its last checkpoint and ends with the same parameters as an un
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import dataclasses
 import functools
@@ -24,7 +25,7 @@ from tqdm import tqdm
 
 from sparsecomm import checkpoint
 from sparsecomm.configs import to_dict
-from sparsecomm.sharding import RUNS, make_mesh, place_runs, use_mesh
+from sparsecomm.sharding import RUNS, make_mesh, place_runs, to_host, use_mesh
 
 FIRST_COLUMNS = ["seed", "lam", "update", "env_steps", "episodes"]
 METRIC_ORDER = [
@@ -131,6 +132,7 @@ def run_sweep(
         "chunk": chunk,
     }
     ckpt = out / "checkpoint"
+    primary = jax.process_index() == 0  # the process that writes logs and checkpoints
     start = 0
     csv_path = out / "metrics.csv"
     if resume and checkpoint.exists(ckpt):
@@ -146,20 +148,21 @@ def run_sweep(
                     f"(use a new --out folder or --no-resume)"
                 )
         state = place_runs(checkpoint.load(ckpt, state), mesh)
-        start = int(np.asarray(state.update).max())
-        _truncate_csv(csv_path, start)
-    elif csv_path.exists():
+        start = int(to_host(state.update).max())
+        if primary:
+            _truncate_csv(csv_path, start)
+    elif primary and csv_path.exists():
         csv_path.unlink()
 
     writer = None
-    if tensorboard:
+    if tensorboard and primary:
         from tensorboardX import SummaryWriter
 
         writer = SummaryWriter(str(out / "tensorboard"))
     bar = tqdm(
         total=num_updates,
         initial=start,
-        disable=not progress,
+        disable=not progress or not primary,
         unit="upd",
         desc=f"{kind} {len(runs)} run(s)",
         dynamic_ncols=True,
@@ -167,39 +170,40 @@ def run_sweep(
     header_written = csv_path.exists() and start > 0
     t0 = time.time()
     done, chunks = start, 0
-    with open(csv_path, "a", newline="") as f:
-        w = csv.writer(f)
+    with open(csv_path, "a", newline="") if primary else contextlib.nullcontext() as f:
+        w = csv.writer(f) if primary else None
         while done < num_updates:
             n = min(chunk, num_updates - done)
             with use_mesh(mesh):
                 state, metrics = steps(state, n)
-            metrics = {k: np.asarray(v) for k, v in metrics.items()}  # (runs, n)
+            metrics = to_host(metrics)  # {name: (runs, n)} on every process
             names = _row_metrics(metrics)
-            if not header_written:
-                w.writerow(FIRST_COLUMNS + names)
-                header_written = True
-            for u in range(n):
-                upd = done + u + 1
-                for r, (seed, lam) in enumerate(runs):
-                    w.writerow(
-                        [
-                            seed,
-                            lam,
-                            upd,
-                            upd * episodes_per_update * steps_per_episode,
-                            upd * episodes_per_update,
-                        ]
-                        + [f"{metrics[k][r, u]:.6g}" for k in names]
-                    )
-                if writer is not None:
+            if primary:
+                if not header_written:
+                    w.writerow(FIRST_COLUMNS + names)
+                    header_written = True
+                for u in range(n):
+                    upd = done + u + 1
                     for r, (seed, lam) in enumerate(runs):
-                        for k in names:
-                            writer.add_scalar(
-                                f"lam={lam:g}/seed={seed}/{k}",
-                                metrics[k][r, u],
+                        w.writerow(
+                            [
+                                seed,
+                                lam,
+                                upd,
                                 upd * episodes_per_update * steps_per_episode,
-                            )
-            f.flush()
+                                upd * episodes_per_update,
+                            ]
+                            + [f"{metrics[k][r, u]:.6g}" for k in names]
+                        )
+                    if writer is not None:
+                        for r, (seed, lam) in enumerate(runs):
+                            for k in names:
+                                writer.add_scalar(
+                                    f"lam={lam:g}/seed={seed}/{k}",
+                                    metrics[k][r, u],
+                                    upd * episodes_per_update * steps_per_episode,
+                                )
+                f.flush()
             done += n
             chunks += 1
             last = {k: float(metrics[k][:, -1].mean()) for k in METRIC_ORDER if k in metrics}

@@ -1,12 +1,17 @@
-"""Scale-out: a sweep split over 4 (forced CPU) devices matches the single-device run."""
+"""Scale-out: a sweep split over 4 (forced CPU) devices, in one process and in two processes
+under ``jax.distributed``, matches the single-device run."""
 
 import os
+import socket
 import subprocess
 import sys
 import textwrap
 
+import numpy as np
+from flax import serialization
 
-def test_sweep_sharded_over_four_devices_matches_one_device(tmp_path):
+
+def test_sweep_sharded_over_devices_and_processes_matches_one_device(tmp_path):
     # 2 runs x 4 episodes on 4 devices: a (runs 2, episodes 2) mesh, so both axes are split.
     # The episode split changes the order of the gradient sums, and Adam's normalised steps
     # carry that difference (about 1e-5 after 3 updates) into the parameters.
@@ -52,6 +57,64 @@ def test_sweep_sharded_over_four_devices_matches_one_device(tmp_path):
     )
     assert out.returncode == 0, out.stderr[-3000:]
     assert "SHARDED_OK" in out.stdout
+
+    # The same sweep on two processes (2 CPU devices each) joined by jax.distributed: the mesh
+    # spans both; process 0 alone writes the log and the checkpoint.
+    with socket.socket() as sock:
+        sock.bind(("localhost", 0))
+        port = sock.getsockname()[1]
+    worker = textwrap.dedent(
+        f"""
+        import sys, jax
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+        jax.distributed.initialize("localhost:{port}", num_processes=2, process_id=int(sys.argv[1]))
+        assert len(jax.devices()) == 4 and len(jax.local_devices()) == 2
+        from sparsecomm.configs import RLConfig
+        from sparsecomm.envs.navigation import NavConfig
+        from sparsecomm.rl import make_train
+        from sparsecomm.sweep import SweepSpec, run_sweep
+
+        cfg = RLConfig(env=NavConfig(max_steps=8), num_envs=4)
+        run_sweep(make_train(cfg), cfg, SweepSpec(seeds=1, lams=(0.0, 0.01)), r"{tmp_path}/c",
+                  devices=jax.devices(), num_updates=3, episodes_per_update=4,
+                  steps_per_episode=8, chunk=3, tensorboard=False, progress=False)
+        print("WORKER_OK")
+        """
+    )
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", worker, str(i)],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for i in range(2)
+    ]
+    outs = [p.communicate(timeout=600) for p in procs]
+    for p, (stdout, stderr) in zip(procs, outs, strict=True):
+        assert p.returncode == 0 and "WORKER_OK" in stdout, stderr[-3000:]
+
+    def params(run):
+        raw = (tmp_path / run / "checkpoint" / "state.msgpack").read_bytes()
+        return serialization.msgpack_restore(raw)["params"]
+
+    multi, single = params("c"), params("b")
+    leaves = zip(_leaves(multi), _leaves(single), strict=True)
+    for x, y in leaves:
+        np.testing.assert_allclose(x, y, rtol=1e-4, atol=1e-4)
+    rows = (tmp_path / "c" / "metrics.csv").read_text().splitlines()
+    assert (
+        len(rows) == 1 + 3 * 2
+        and rows[0] == (tmp_path / "b" / "metrics.csv").read_text().splitlines()[0]
+    )
+
+
+def _leaves(tree):
+    if isinstance(tree, dict):
+        return [leaf for k in sorted(tree) for leaf in _leaves(tree[k])]
+    return [np.asarray(tree)]
 
 
 def test_mesh_layout():
