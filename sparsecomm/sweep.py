@@ -10,7 +10,6 @@ dies resumes from its last checkpoint and ends with the same parameters as an un
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import dataclasses
 import functools
@@ -76,6 +75,68 @@ def _truncate_csv(path: Path, max_update: int) -> None:
         csv.writer(f).writerows(keep)
 
 
+class _Log:
+    """A sweep's ``metrics.csv`` (one row per run and update) and TensorBoard scalars.
+
+    Only the writing process (process 0 under ``jax.distributed``) opens anything.
+    """
+
+    def __init__(
+        self,
+        out: Path,
+        runs,
+        steps_per_update: int,
+        episodes_per_update: int,
+        *,
+        resume_at: int,
+        tensorboard: bool,
+        primary: bool,
+    ):
+        self.runs, self.steps, self.episodes = runs, steps_per_update, episodes_per_update
+        self.csv = self.tb = self.file = None
+        if not primary:
+            return
+        path = out / "metrics.csv"
+        if resume_at > 0:
+            _truncate_csv(path, resume_at)
+        elif path.exists():
+            path.unlink()
+        self.header = path.exists() and resume_at > 0
+        self.file = open(path, "a", newline="")
+        self.csv = csv.writer(self.file)
+        if tensorboard:
+            from tensorboardX import SummaryWriter
+
+            self.tb = SummaryWriter(str(out / "tensorboard"))
+
+    def write(self, metrics: dict, first_update: int) -> None:
+        """Log ``metrics`` ({name: (runs, n)}) of updates ``first_update`` .. + n - 1."""
+        if self.csv is None:
+            return
+        names = _row_metrics(metrics)
+        if not self.header:
+            self.csv.writerow(FIRST_COLUMNS + names)
+            self.header = True
+        n = next(iter(metrics.values())).shape[1]
+        for u in range(n):
+            upd = first_update + u
+            env_steps = upd * self.steps
+            for r, (seed, lam) in enumerate(self.runs):
+                values = [metrics[k][r, u] for k in names]
+                self.csv.writerow(
+                    [seed, lam, upd, env_steps, upd * self.episodes] + [f"{v:.6g}" for v in values]
+                )
+                if self.tb is not None:
+                    for k, v in zip(names, values, strict=True):
+                        self.tb.add_scalar(f"lam={lam:g}/seed={seed}/{k}", v, env_steps)
+        self.file.flush()
+
+    def close(self) -> None:
+        for f in (self.file, self.tb):
+            if f is not None:
+                f.close()
+
+
 @functools.lru_cache(maxsize=16)
 def _compiled(learner, sharded: bool):
     """The learner's vmapped, jitted ``init`` and ``update_chunk`` (compiled once per learner).
@@ -134,7 +195,6 @@ def run_sweep(
     ckpt = out / "checkpoint"
     primary = jax.process_index() == 0  # the process that writes logs and checkpoints
     start = 0
-    csv_path = out / "metrics.csv"
     if resume and checkpoint.exists(ckpt):
         old = checkpoint.load_meta(ckpt)
         # The training budget may grow: no learner's update depends on ``num_updates``, so a run
@@ -149,16 +209,17 @@ def run_sweep(
                 )
         state = place_runs(checkpoint.load(ckpt, state), mesh)
         start = int(to_host(state.update).max())
-        if primary:
-            _truncate_csv(csv_path, start)
-    elif primary and csv_path.exists():
-        csv_path.unlink()
 
-    writer = None
-    if tensorboard and primary:
-        from tensorboardX import SummaryWriter
-
-        writer = SummaryWriter(str(out / "tensorboard"))
+    steps_per_update = episodes_per_update * steps_per_episode
+    log = _Log(
+        out,
+        runs,
+        steps_per_update,
+        episodes_per_update,
+        resume_at=start,
+        tensorboard=tensorboard,
+        primary=primary,
+    )
     bar = tqdm(
         total=num_updates,
         initial=start,
@@ -167,63 +228,31 @@ def run_sweep(
         desc=f"{kind} {len(runs)} run(s)",
         dynamic_ncols=True,
     )
-    header_written = csv_path.exists() and start > 0
     t0 = time.time()
     done, chunks = start, 0
-    with open(csv_path, "a", newline="") if primary else contextlib.nullcontext() as f:
-        w = csv.writer(f) if primary else None
-        while done < num_updates:
-            n = min(chunk, num_updates - done)
-            with use_mesh(mesh):
-                state, metrics = steps(state, n)
-            metrics = to_host(metrics)  # {name: (runs, n)} on every process
-            names = _row_metrics(metrics)
-            if primary:
-                if not header_written:
-                    w.writerow(FIRST_COLUMNS + names)
-                    header_written = True
-                for u in range(n):
-                    upd = done + u + 1
-                    for r, (seed, lam) in enumerate(runs):
-                        w.writerow(
-                            [
-                                seed,
-                                lam,
-                                upd,
-                                upd * episodes_per_update * steps_per_episode,
-                                upd * episodes_per_update,
-                            ]
-                            + [f"{metrics[k][r, u]:.6g}" for k in names]
-                        )
-                    if writer is not None:
-                        for r, (seed, lam) in enumerate(runs):
-                            for k in names:
-                                writer.add_scalar(
-                                    f"lam={lam:g}/seed={seed}/{k}",
-                                    metrics[k][r, u],
-                                    upd * episodes_per_update * steps_per_episode,
-                                )
-                f.flush()
-            done += n
-            chunks += 1
-            last = {k: float(metrics[k][:, -1].mean()) for k in METRIC_ORDER if k in metrics}
-            bar.update(n)
-            # env steps per second of the whole sweep (all runs), compilation included
-            sps = ((done - start) * len(runs) * episodes_per_update * steps_per_episode) / (
-                time.time() - t0
-            )
-            bar.set_postfix(
-                succ=f"{last.get('success_rate', 0):.2f}",
-                len=f"{last.get('episode_length', 0):.0f}",
-                R=f"{last.get('group_reward', 0):.0f}",
-                bits=f"{last.get('bits_per_step', 0):.1f}",
-                sps=f"{sps:.0f}",
-            )
-            if chunks % checkpoint_every == 0 or done >= num_updates:
-                checkpoint.save(ckpt, state, meta)
-            if on_chunk is not None:
-                on_chunk(done, state, metrics)
+    while done < num_updates:
+        n = min(chunk, num_updates - done)
+        with use_mesh(mesh):
+            state, metrics = steps(state, n)
+        metrics = to_host(metrics)  # {name: (runs, n)} on every process
+        log.write(metrics, done + 1)
+        done += n
+        chunks += 1
+        last = {k: float(metrics[k][:, -1].mean()) for k in METRIC_ORDER if k in metrics}
+        bar.update(n)
+        # env steps per second of the whole sweep (all runs), compilation included
+        sps = (done - start) * len(runs) * steps_per_update / (time.time() - t0)
+        bar.set_postfix(
+            succ=f"{last.get('success_rate', 0):.2f}",
+            len=f"{last.get('episode_length', 0):.0f}",
+            R=f"{last.get('group_reward', 0):.0f}",
+            bits=f"{last.get('bits_per_step', 0):.1f}",
+            sps=f"{sps:.0f}",
+        )
+        if chunks % checkpoint_every == 0 or done >= num_updates:
+            checkpoint.save(ckpt, state, meta)
+        if on_chunk is not None:
+            on_chunk(done, state, metrics)
     bar.close()
-    if writer is not None:
-        writer.close()
+    log.close()
     return state, runs
