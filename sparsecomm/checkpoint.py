@@ -15,7 +15,7 @@ from pathlib import Path
 import jax
 from flax import serialization
 
-from sparsecomm.sharding import is_key, to_host
+from sparsecomm.sharding import is_key, raw_keys, to_host
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
@@ -54,7 +54,7 @@ def load(folder: str | os.PathLike, template):
     path = Path(folder) / "state.msgpack"
     if not path.exists():
         raise FileNotFoundError(f"no checkpoint in {folder} (missing {path.name})")
-    raw_template = jax.tree.map(lambda x: jax.random.key_data(x) if is_key(x) else x, template)
+    raw_template = raw_keys(template)
     raw = serialization.from_bytes(raw_template, path.read_bytes())
     return jax.tree.map(
         lambda t, r: jax.random.wrap_key_data(r) if is_key(t) else jax.numpy.asarray(r),

@@ -53,6 +53,11 @@ def is_key(x) -> bool:
     return isinstance(x, jax.Array) and jax.dtypes.issubdtype(x.dtype, jax.dtypes.prng_key)
 
 
+def raw_keys(tree):
+    """``tree`` with every PRNG key array replaced by its raw ``key_data``."""
+    return jax.tree.map(lambda x: jax.random.key_data(x) if is_key(x) else x, tree)
+
+
 def place_runs(tree, mesh: Mesh | None):
     """Put a batched state (runs on axis 0 of every leaf) on ``mesh``, replicated over episodes.
 
@@ -78,7 +83,7 @@ def to_host(tree):
 
     On several hosts this gathers the shards of all processes: every process must call it.
     """
-    raw = jax.tree.map(lambda x: jax.random.key_data(x) if is_key(x) else x, tree)
+    raw = raw_keys(tree)
     if jax.process_count() == 1:
         return jax.tree.map(np.asarray, raw)
     from jax.experimental import multihost_utils
