@@ -10,6 +10,10 @@ import textwrap
 import numpy as np
 from flax import serialization
 
+# Tiny runs whose time is compilation: compile with most XLA optimisations off (as the other
+# end-to-end tests do, tests/conftest.py); the SPMD partitioner still runs.
+FAST = {"JAX_DISABLE_MOST_OPTIMIZATIONS": "true"}
+
 
 def test_sweep_sharded_over_devices_and_processes_matches_one_device(tmp_path):
     # 2 runs x 4 episodes on 4 devices: a (runs 2, episodes 2) mesh, so both axes are split.
@@ -52,7 +56,7 @@ def test_sweep_sharded_over_devices_and_processes_matches_one_device(tmp_path):
         print("SHARDED_OK")
         """
     )
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4")
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4", **FAST)
     out = subprocess.run(
         [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=600
     )
@@ -82,7 +86,7 @@ def test_sweep_sharded_over_devices_and_processes_matches_one_device(tmp_path):
         print("WORKER_OK")
         """
     )
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", **FAST)
     procs = [
         subprocess.Popen(
             [sys.executable, "-c", worker, str(i)],
