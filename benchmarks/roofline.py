@@ -8,6 +8,12 @@ K agents, batched over agents), and on one large square matmul. The bound is
 ``FLOP/s / FLOPs per env step``: what the update could reach if it did nothing but these
 matmuls at the measured rate.
 
+A third, tighter bound times a *skeleton* of the update: the same matmuls in the same
+``lax.scan`` over the episode (actors batched over agents, one tanh so the recurrence is not
+linear, critic per step), differentiated with ``jax.grad``, and nothing else: no environment, no
+channel, no random draws. Whatever the real update adds on top of it is the overhead that an
+optimisation could remove; the skeleton's rate is what the update could reach without it.
+
     python benchmarks/roofline.py --num-envs 256
 """
 
@@ -59,6 +65,42 @@ def timed(fn, *args, repeats=20):
     return statistics.median(ts)
 
 
+def skeleton_seconds(cfg: RLConfig, shapes, num_envs: int, repeats: int = 5) -> float:
+    """Median seconds of ``jax.grad`` of the update's matmuls alone, scanned over the episode."""
+    actor, critic = shapes
+    k, t_len, gru = cfg.env.num_agents, cfg.env.max_steps, cfg.agent.gru
+    key = jax.random.key(0)
+    aw = [
+        0.1 * jax.random.normal(jax.random.fold_in(key, n), (k, i, o))
+        for n, (i, o) in enumerate(actor)
+    ]
+    cw = [0.1 * jax.random.normal(jax.random.fold_in(key, 9 + n), s) for n, s in enumerate(critic)]
+    xs = jax.random.normal(key, (t_len, k, num_envs, actor[0][0]))
+    states = jax.random.normal(key, (t_len, num_envs, critic[0][0]))
+
+    def loss(aw, cw):
+        w1, w2, w_in, w_hid, w_act, w_msg = aw
+
+        def mm(x, w):
+            return jnp.einsum("kbi,kio->kbo", x, w)
+
+        def step(h, x):
+            gates_in, gates_hid = mm(mm(mm(x, w1), w2), w_in), mm(h, w_hid)
+            h = jnp.tanh(gates_in[..., :gru] + gates_hid[..., :gru])
+            return h, mm(h, w_act).sum() + mm(h, w_msg).sum()
+
+        _, out = jax.lax.scan(step, jnp.zeros((k, num_envs, gru)), xs)
+
+        def value(s):
+            for w in cw:
+                s = s @ w
+            return s.sum()
+
+        return out.sum() + jax.lax.map(value, states).sum()
+
+    return timed(jax.grad(loss, argnums=(0, 1)), aw, cw, repeats=repeats)
+
+
 def main():
     p = argparse.ArgumentParser()
     p.add_argument("--num-envs", type=int, default=256)
@@ -94,6 +136,12 @@ def main():
     print(f"matmul FLOP/s, {n} x {n} square: {rate_big / 1e9:.1f} G")
     for name, rate in (("step shapes", rate_step), ("square", rate_big)):
         print(f"roofline at the {name} rate: {rate / total:,.0f} env steps/s")
+    steps = a.num_envs * cfg.env.max_steps
+    t_skel = skeleton_seconds(cfg, f["shapes"], a.num_envs)
+    print(
+        f"skeleton update (the matmuls alone, scanned and differentiated): {t_skel:.3f} s, "
+        f"{total * steps / t_skel / 1e9:.1f} GFLOP/s, bound {steps / t_skel:,.0f} env steps/s"
+    )
     print(
         f"on {jax.devices()[0].platform}, {jax.local_device_count()} device(s), "
         f"jax {jax.__version__}"

@@ -19,6 +19,7 @@ from sparsecomm.configs import ILConfig, RLConfig, from_dict
 from sparsecomm.imitation import make_imitate
 from sparsecomm.report import bootstrap_ci, plot_curves
 from sparsecomm.rl import make_train
+from sparsecomm.sharding import RUNS, Distributed, make_mesh, place_runs, to_host, use_mesh
 from sparsecomm.sweep import SweepSpec, run_sweep
 
 EVAL_SEED_OFFSET = 1_000_003
@@ -51,6 +52,9 @@ class Train:
     """Render one episode of the first run's team to ``out/team.gif``."""
     progress: bool = True
     """Show a progress bar."""
+    distributed: Distributed = dataclasses.field(default_factory=Distributed)
+    """Multi-host: every process runs this command; the runs and episodes are split over all
+    processes' devices, process 0 writes the files."""
 
 
 @dataclasses.dataclass
@@ -109,11 +113,22 @@ def load_run(folder: Path):
     return config, trainer, runs, state
 
 
-def evaluate_runs(trainer, runs, state, episodes: int, greedy: bool = False) -> dict:
+def evaluate_runs(trainer, runs, state, episodes: int, greedy: bool = False, devices=None) -> dict:
+    """Evaluate every run of a sweep over ``episodes`` fresh episodes, with bootstrap CIs.
+
+    The runs and episodes are split over ``devices`` (default: the local ones) as in training;
+    with several processes every process must call this (pass ``jax.devices()``).
+    """
     config = trainer.config
     keys = jnp.stack([jax.random.key(config.seed + EVAL_SEED_OFFSET + r) for r in range(len(runs))])
-    ev = jax.jit(jax.vmap(lambda p, k: trainer.evaluate(p, k, episodes, greedy)))
-    metrics = {k: np.asarray(v) for k, v in ev(state.params["actor"], keys).items()}
+    mesh = make_mesh(len(runs), episodes, devices)
+    params = place_runs(to_host(state.params["actor"]), mesh)
+    spmd = RUNS if mesh is not None else None
+    ev = jax.jit(
+        jax.vmap(lambda p, k: trainer.evaluate(p, k, episodes, greedy), spmd_axis_name=spmd)
+    )
+    with use_mesh(mesh):
+        metrics = to_host(ev(params, place_runs(keys, mesh)))
     per_run = [
         {"seed": s, "lam": lam, **{k: float(v[i]) for k, v in metrics.items()}}
         for i, (s, lam) in enumerate(runs)
@@ -147,6 +162,8 @@ def render_run(trainer, actor_params, seed: int, out: Path, fps: int = 12) -> Pa
 
 def train(args: Train) -> dict:
     """Run ``sparsecomm train`` or ``sparsecomm imitate`` (by the type of ``args``)."""
+    args.distributed.initialize()
+    primary = jax.process_index() == 0  # the process that writes files
     cfg = args.config
     kind = "imitate" if isinstance(args, Imitate) else "train"
     trainer = make_imitate(cfg) if kind == "imitate" else make_train(cfg)
@@ -166,14 +183,20 @@ def train(args: Train) -> dict:
         tensorboard=args.tensorboard,
         progress=args.progress,
         kind=kind,
+        devices=jax.devices(),
     )
     wall = time.time() - t0
-    results = evaluate_runs(trainer, runs, state, args.eval_episodes)
+    results = evaluate_runs(trainer, runs, state, args.eval_episodes, devices=jax.devices())
     results.update(
         env_steps=cfg.num_updates * cfg.num_envs * cfg.env.max_steps,
         wall_clock_s=wall,
         device=str(jax.devices()[0]),
+        devices=jax.device_count(),
+        processes=jax.process_count(),
     )
+    actor0 = jax.tree.map(lambda x: x[0], to_host(state.params["actor"]))  # every process
+    if not primary:
+        return results
     (args.out / "results.json").write_text(json.dumps(results, indent=2))
     print(f"results -> {args.out / 'results.json'}")
     for lam, m in results["by_lambda"].items():
@@ -191,8 +214,7 @@ def train(args: Train) -> dict:
         curves = plot_curves(args.out / "metrics.csv", args.out / "curves.png", metrics)
         print(f"curves  -> {curves}")
     if args.gif:
-        params0 = jax.tree.map(lambda x: x[0], state.params["actor"])
-        print(f"gif     -> {render_run(trainer, params0, 0, args.out / 'team.gif')}")
+        print(f"gif     -> {render_run(trainer, actor0, 0, args.out / 'team.gif')}")
     return results
 
 

@@ -9,16 +9,18 @@ episodes. XLA's SPMD partitioner then inserts the one collective this needs: the
 run's gradients over its episode shards. Nothing else is exchanged, so the results equal a
 single-device run up to float summation order.
 
-Multi-host: start every process with ``jax.distributed.initialize()`` and pass
-``devices=jax.devices()`` (all hosts' devices) to :func:`sparsecomm.sweep.run_sweep` in every
-process. The mesh then spans hosts; :func:`place_runs` builds the global arrays from each
-process's copy, :func:`to_host` gathers metrics and state to every process, and only process 0
-writes logs and checkpoints (tested with 2 CPU processes, ``tests/test_sharding.py``).
+Multi-host: start every process with ``jax.distributed.initialize()`` (the CLI's
+``--distributed.*`` flags, :class:`Distributed`) and pass ``devices=jax.devices()`` (all hosts'
+devices) to :func:`sparsecomm.sweep.run_sweep` in every process. The mesh then spans hosts;
+:func:`place_runs` builds the global arrays from each process's copy, :func:`to_host` gathers
+metrics and state to every process, and only process 0 writes logs, checkpoints and results
+(tested with 2 CPU processes, ``tests/test_sharding.py``).
 """
 
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import math
 from collections.abc import Sequence
 
@@ -30,6 +32,38 @@ RUNS = "runs"
 """Mesh axis over which the runs of a sweep are split."""
 EPISODES = "episodes"
 """Mesh axis over which each run's parallel episodes are split."""
+
+
+@dataclasses.dataclass
+class Distributed:
+    """Join a multi-process JAX cluster (``jax.distributed``) before anything runs.
+
+    Every process runs the same command; the sweep's runs and episodes are then split over the
+    devices of all processes, and process 0 alone writes files. Fields left unset are
+    auto-detected by JAX on the clusters it knows (SLURM, Open MPI, Kubernetes...).
+    """
+
+    enabled: bool = False
+    """Call ``jax.distributed.initialize`` (off: a single process)."""
+    coordinator_address: str | None = None
+    """``host:port`` of process 0's coordinator (default: ``JAX_COORDINATOR_ADDRESS`` or the
+    cluster's)."""
+    num_processes: int | None = None
+    """Number of processes (default: the cluster's)."""
+    process_id: int | None = None
+    """This process's index in ``[0, num_processes)`` (default: the cluster's)."""
+
+    def initialize(self) -> None:
+        """Join the cluster (a no-op unless ``enabled``). CPU collectives go over gloo."""
+        if not self.enabled:
+            return
+        n, i = self.num_processes, self.process_id
+        if n is not None and n < 1:
+            raise ValueError(f"distributed.num_processes must be >= 1, got {n}")
+        if i is not None and n is not None and not 0 <= i < n:
+            raise ValueError(f"distributed.process_id must be in [0, {n - 1}], got {i}")
+        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+        jax.distributed.initialize(self.coordinator_address, n, i)
 
 
 def make_mesh(num_runs: int, num_envs: int, devices: Sequence | None = None) -> Mesh | None:

@@ -1,21 +1,26 @@
 """Scale-out: a sweep split over 4 (forced CPU) devices, in one process and in two processes
 under ``jax.distributed``, matches the single-device run."""
 
+import json
 import os
 import socket
 import subprocess
 import sys
 import textwrap
 
+import jax
 import numpy as np
+import pytest
 from flax import serialization
+
+from sparsecomm.cli import evaluate_runs, load_run
 
 # Tiny runs whose time is compilation: compile with most XLA optimisations off (as the other
 # end-to-end tests do, tests/conftest.py); the SPMD partitioner still runs.
 FAST = {"JAX_DISABLE_MOST_OPTIMIZATIONS": "true"}
 
 
-def test_sweep_sharded_over_devices_and_processes_matches_one_device(tmp_path):
+def test_sweep_sharded_over_devices_and_processes_matches_one_device(tmp_path, fast_compile):
     # 2 runs x 4 episodes on 4 devices: a (runs 2, episodes 2) mesh, so both axes are split.
     # The episode split changes the order of the gradient sums, and Adam's normalised steps
     # carry that difference (about 1e-5 after 3 updates) into the parameters.
@@ -63,26 +68,29 @@ def test_sweep_sharded_over_devices_and_processes_matches_one_device(tmp_path):
     assert out.returncode == 0, out.stderr[-3000:]
     assert "SHARDED_OK" in out.stdout
 
-    # The same sweep on two processes (2 CPU devices each) joined by jax.distributed: the mesh
-    # spans both; process 0 alone writes the log and the checkpoint.
+    # The same sweep through the CLI on two processes (2 CPU devices each) joined by
+    # jax.distributed: the mesh spans both; process 0 alone writes the log, the checkpoint, the
+    # evaluation and the plot.
     with socket.socket() as sock:
         sock.bind(("localhost", 0))
         port = sock.getsockname()[1]
     worker = textwrap.dedent(
         f"""
-        import sys, jax
-        jax.config.update("jax_cpu_collectives_implementation", "gloo")
-        jax.distributed.initialize("localhost:{port}", num_processes=2, process_id=int(sys.argv[1]))
-        assert len(jax.devices()) == 4 and len(jax.local_devices()) == 2
+        import sys
+        from pathlib import Path
+        import jax
+        from sparsecomm.cli import Train, train
         from sparsecomm.configs import RLConfig
         from sparsecomm.envs.navigation import NavConfig
-        from sparsecomm.rl import make_train
-        from sparsecomm.sweep import SweepSpec, run_sweep
+        from sparsecomm.sharding import Distributed
 
-        cfg = RLConfig(env=NavConfig(max_steps=8), num_envs=4)
-        run_sweep(make_train(cfg), cfg, SweepSpec(seeds=1, lams=(0.0, 0.01)), r"{tmp_path}/c",
-                  devices=jax.devices(), num_updates=3, episodes_per_update=4,
-                  steps_per_episode=8, chunk=3, tensorboard=False, progress=False)
+        cluster = Distributed(True, "localhost:{port}", 2, int(sys.argv[1]))
+        cfg = RLConfig(env=NavConfig(max_steps=8), num_envs=4, num_updates=3)
+        res = train(Train(config=cfg, lams=(0.0, 0.01), out=Path(r"{tmp_path}/c"), chunk=3,
+                          tensorboard=False, progress=False, eval_episodes=4, gif=False,
+                          distributed=cluster))
+        assert len(jax.devices()) == 4 and len(jax.local_devices()) == 2
+        assert res["processes"] == 2 and res["devices"] == 4, res
         print("WORKER_OK")
         """
     )
@@ -114,6 +122,17 @@ def test_sweep_sharded_over_devices_and_processes_matches_one_device(tmp_path):
         len(rows) == 1 + 3 * 2
         and rows[0] == (tmp_path / "b" / "metrics.csv").read_text().splitlines()[0]
     )
+    assert (tmp_path / "c" / "curves.png").stat().st_size > 0
+    # The two processes' evaluation (runs and episodes split over 4 devices) equals a
+    # single-device evaluation of the checkpoint they wrote.
+    results = json.loads((tmp_path / "c" / "results.json").read_text())
+    _, trainer, runs, state = load_run(tmp_path / "c")
+    again = evaluate_runs(trainer, runs, state, 4, devices=[jax.devices()[0]])
+    assert len(results["runs"]) == len(again["runs"]) == 2
+    for a, b in zip(results["runs"], again["runs"], strict=True):
+        assert a.keys() == b.keys()
+        for name in a:
+            np.testing.assert_allclose(a[name], b[name], rtol=1e-4, atol=1e-4, err_msg=name)
 
 
 def _leaves(tree):
@@ -123,8 +142,6 @@ def _leaves(tree):
 
 
 def test_mesh_layout():
-    import jax
-
     from sparsecomm.sharding import make_mesh
 
     devs = jax.devices() * 8  # stand-ins: make_mesh only lays them out
@@ -134,3 +151,14 @@ def test_mesh_layout():
     assert dict(make_mesh(1, 6, devs[:4]).shape) == {"runs": 1, "episodes": 2}
     assert dict(make_mesh(20, 64, devs[:8]).shape) == {"runs": 4, "episodes": 2}
     assert make_mesh(3, 5, devs[:4]) is None
+
+
+def test_distributed_flags_are_checked_before_joining():
+    from sparsecomm.sharding import Distributed
+
+    Distributed().initialize()  # disabled: a no-op, one process
+    assert jax.process_count() == 1
+    with pytest.raises(ValueError, match=r"distributed.process_id must be in \[0, 1\], got 2"):
+        Distributed(True, "localhost:1", 2, 2).initialize()
+    with pytest.raises(ValueError, match="distributed.num_processes must be >= 1, got 0"):
+        Distributed(True, "localhost:1", 0, 0).initialize()
