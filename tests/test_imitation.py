@@ -16,7 +16,7 @@ from sparsecomm.rollout import rollout
 TINY = ILConfig(env=NavConfig(max_steps=16), num_envs=4, num_updates=2)
 
 
-def test_oracle_labels_every_step_and_drives_when_beta_is_one():
+def test_oracle_labels_every_step_and_drives_when_beta_is_one(fast_compile):
     im = make_imitate(TINY)
     params = im.team.init(jax.random.key(0))["actor"]
     traj = rollout(
@@ -41,7 +41,7 @@ def test_oracle_labels_every_step_and_drives_when_beta_is_one():
     assert np.mean(np.asarray(learner.actions) != np.asarray(learner.expert_actions)) > 0.3
 
 
-def test_beta_schedule_and_lambda_in_loss():
+def test_beta_schedule_and_lambda_in_loss(fast_compile):
     cfg = dataclasses.replace(TINY, num_updates=4, beta_decay_updates=2)
     im = make_imitate(cfg)
     _, m = jax.jit(jax.vmap(im.train, (None, 0)))(jax.random.key(0), jnp.array([0.0, 1.0]))
@@ -50,7 +50,7 @@ def test_beta_schedule_and_lambda_in_loss():
     np.testing.assert_allclose(m["loss"][1], m["imitation_loss"][1] + m["penalty"][1], rtol=1e-5)
 
 
-def test_learners_get_gradient_only_through_messages_from_others():
+def test_learners_get_gradient_only_through_messages_from_others(fast_compile):
     im = make_imitate(TINY)
     params = im.team.init(jax.random.key(0))["actor"]
 

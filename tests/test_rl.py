@@ -34,7 +34,7 @@ def _agent_norm(grads, agent):
 
 
 @pytest.mark.parametrize("mode", ["discrete", "continuous"])
-def test_gradient_flows_from_receiver_into_every_sender(mode):
+def test_gradient_flows_from_receiver_into_every_sender(mode, fast_compile):
     grads = _receiver_grads(mode, receiver=2)
     for sender in (0, 1):
         assert _agent_norm(grads, sender) > 0.0
@@ -44,7 +44,7 @@ def test_gradient_flows_from_receiver_into_every_sender(mode):
     assert float(jnp.abs(grads["params"][head]["kernel"][0]).sum()) > 0.0
 
 
-def test_no_gradient_between_agents_without_communication():
+def test_no_gradient_between_agents_without_communication(fast_compile):
     grads = _receiver_grads("off", receiver=2)
     assert _agent_norm(grads, 2) > 0.0
     for sender in (0, 1):
@@ -69,7 +69,7 @@ def test_returns_are_monte_carlo_and_stop_at_episode_end():
     np.testing.assert_allclose(target[:, 0, 0], [1 + 0.5 * 2 + 0.25 * 3, 2 + 0.5 * 3, 3, 0])
 
 
-def test_training_is_deterministic():
+def test_training_is_deterministic(fast_compile):
     tr = make_train(TINY)
     a = jax.jit(tr.train)(jax.random.key(3), 0.0)
     b = jax.jit(tr.train)(jax.random.key(3), 0.0)
@@ -77,7 +77,7 @@ def test_training_is_deterministic():
         np.testing.assert_array_equal(x, y)
 
 
-def test_bits_and_penalty_logged_from_real_symbols():
+def test_bits_and_penalty_logged_from_real_symbols(fast_compile):
     def metrics(mode):
         cfg = dataclasses.replace(TINY, channel=ChannelConfig(mode=mode))
         tr = make_train(cfg)
@@ -95,7 +95,7 @@ def test_bits_and_penalty_logged_from_real_symbols():
     assert cont["bits_per_step"] == 60 * 32 and cont["penalty"] == 0
 
 
-def test_lambda_lowers_bits():
+def test_lambda_lowers_bits(fast_compile):
     cfg = dataclasses.replace(TINY, num_updates=30, lr=3e-3)
     tr = make_train(cfg)
     _, m = jax.jit(jax.vmap(tr.train, (None, 0)))(jax.random.key(0), jnp.array([0.0, 1.0]))
@@ -103,7 +103,7 @@ def test_lambda_lowers_bits():
     assert bits[1] < 0.5 * bits[0]
 
 
-def test_penalty_schedule_delays_and_ramps_the_weight():
+def test_penalty_schedule_delays_and_ramps_the_weight(fast_compile):
     def f(u, delay, ramp):
         return float(penalty_schedule(jnp.asarray(u), delay, ramp))
 
@@ -115,7 +115,7 @@ def test_penalty_schedule_delays_and_ramps_the_weight():
     assert w[0] == w[1] == 0.0 and w[2] > 0.0
 
 
-def test_resume_gives_same_parameters_as_uninterrupted_run(tmp_path):
+def test_resume_gives_same_parameters_as_uninterrupted_run(tmp_path, fast_compile):
     tr = make_train(TINY)
     spec = SweepSpec(seeds=2, lams=(0.0, 0.01))
     kw = dict(
