@@ -44,6 +44,7 @@ import numpy as np
 from sparsecomm import report_md
 from sparsecomm.configs import ChannelConfig, ILConfig, RLConfig
 from sparsecomm.report import plot_curves, plot_pareto
+from sparsecomm.sharding import Distributed
 
 RL_LAMS = (0.01, 0.005, 0.001, 0.0)
 """Paper, section V: the RL penalty weights."""
@@ -122,6 +123,9 @@ class Reproduce:
     """Continue parts from their checkpoints in ``out`` (a finished part is only re-evaluated)."""
     progress: bool = True
     """Show progress bars."""
+    distributed: Distributed = dataclasses.field(default_factory=Distributed)
+    """Multi-host: every process runs this command; each part's runs and episodes are split over
+    all processes' devices, process 0 writes the files."""
 
     def __post_init__(self):
         for name in ("seeds", "rl_updates", "rl_envs", "il_updates", "il_envs", "eval_episodes"):
@@ -295,9 +299,15 @@ def run_fixed(args: Reproduce, out: Path) -> dict:
     fixed = dataclasses.replace(config, channel=dataclasses.replace(config.channel, code="fixed"))
     sub = jax.tree.map(lambda x: x[np.asarray(idx)], state)
     results = evaluate_runs(
-        make_train(fixed), [runs[i] for i in idx], sub, args.resolved("eval_episodes")
+        make_train(fixed),
+        [runs[i] for i in idx],
+        sub,
+        args.resolved("eval_episodes"),
+        devices=jax.devices(),
     )
     results["source"] = "rl teams of lambda 0, channel code 'fixed'"
+    if jax.process_index() != 0:
+        return _budget(config, len(idx), (0.0,))
     (out / "fixed").mkdir(parents=True, exist_ok=True)
     (out / "fixed" / "results.json").write_text(json.dumps(results, indent=2))
     return _budget(config, len(idx), (0.0,))
@@ -310,6 +320,8 @@ def run_scripted(args: Reproduce, out: Path) -> dict:
 
     env = args.rl.env
     seeds, episodes = args.resolved("seeds"), args.resolved("eval_episodes")
+    if jax.process_index() != 0:  # scripted policies need no devices of other processes
+        return {"seeds": seeds, "episodes_per_seed": episodes}
     folder = out / "oracle"
     folder.mkdir(parents=True, exist_ok=True)
     for name, policy in (("results.json", oracle_actions), ("centre.json", center_actions)):
@@ -569,6 +581,8 @@ def write_report(out: Path, command: str = "") -> dict:
 
 def reproduce(args: Reproduce) -> dict:
     """Run the selected parts (in ``PARTS`` order), then write the figures and the report."""
+    args.distributed.initialize()
+    primary = jax.process_index() == 0  # the process that writes files
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     timings_path = out / "timings.json"
@@ -589,11 +603,15 @@ def reproduce(args: Reproduce) -> dict:
                 "commit": _git_commit(),
                 "source_sha256": _source_digest(),
                 "finished": datetime.datetime.now().isoformat(timespec="seconds"),
+                "processes": jax.process_count(),
             }
-            timings_path.write_text(json.dumps(timings, indent=2))
+            if primary:
+                timings_path.write_text(json.dumps(timings, indent=2))
     finally:
         if previous is not None:
             _fast_compile(previous)
+    if not primary:
+        return {}
     summary = write_report(out, shlex.join(sys.argv))
     print(f"report -> {out / 'report.md'}")
     for c in report_md.decide_claims(summary):

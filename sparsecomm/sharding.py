@@ -115,14 +115,21 @@ def place_runs(tree, mesh: Mesh | None):
 def to_host(tree):
     """Every leaf as a full numpy array on this process (PRNG keys as their raw data).
 
-    On several hosts this gathers the shards of all processes: every process must call it.
+    On several hosts, leaves that are global arrays (spread over the processes' devices) are
+    gathered from every process, so every process must call it; process-local leaves are taken
+    as they are.
     """
     raw = raw_keys(tree)
     if jax.process_count() == 1:
         return jax.tree.map(np.asarray, raw)
     from jax.experimental import multihost_utils
 
-    return multihost_utils.process_allgather(raw, tiled=True)
+    def get(x):
+        if isinstance(x, jax.Array) and not x.is_fully_addressable:
+            return multihost_utils.process_allgather(x, tiled=True)
+        return np.asarray(x)
+
+    return jax.tree.map(get, raw)
 
 
 def use_mesh(mesh: Mesh | None):

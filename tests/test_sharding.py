@@ -68,29 +68,25 @@ def test_sweep_sharded_over_devices_and_processes_matches_one_device(tmp_path, f
     assert out.returncode == 0, out.stderr[-3000:]
     assert "SHARDED_OK" in out.stdout
 
-    # The same sweep through the CLI on two processes (2 CPU devices each) joined by
-    # jax.distributed: the mesh spans both; process 0 alone writes the log, the checkpoint, the
-    # evaluation and the plot.
+    # The same sweep as the rl part of `sparsecomm reproduce` (then the fixed-code evaluation,
+    # the scripted policies and the report), on two processes of 2 CPU devices each joined by
+    # jax.distributed: the mesh spans both; process 0 alone writes the files.
     with socket.socket() as sock:
         sock.bind(("localhost", 0))
         port = sock.getsockname()[1]
     worker = textwrap.dedent(
         f"""
         import sys
-        from pathlib import Path
         import jax
-        from sparsecomm.cli import Train, train
-        from sparsecomm.configs import RLConfig
-        from sparsecomm.envs.navigation import NavConfig
-        from sparsecomm.sharding import Distributed
+        from sparsecomm.cli import main
 
-        cluster = Distributed(True, "localhost:{port}", 2, int(sys.argv[1]))
-        cfg = RLConfig(env=NavConfig(max_steps=8), num_envs=4, num_updates=3)
-        res = train(Train(config=cfg, lams=(0.0, 0.01), out=Path(r"{tmp_path}/c"), chunk=3,
-                          tensorboard=False, progress=False, eval_episodes=4, gif=False,
-                          distributed=cluster))
-        assert len(jax.devices()) == 4 and len(jax.local_devices()) == 2
-        assert res["processes"] == 2 and res["devices"] == 4, res
+        main(["reproduce", "--parts", "rl", "fixed", "oracle", "--seeds", "1",
+              "--rl-lams", "0", "0.01", "--rl-updates", "3", "--rl-envs", "4",
+              "--rl.env.max-steps", "8", "--eval-episodes", "4", "--chunk", "3", "--gif", "False",
+              "--no-progress", "--out", r"{tmp_path}/c", "--distributed.enabled",
+              "--distributed.coordinator-address", "localhost:{port}",
+              "--distributed.num-processes", "2", "--distributed.process-id", sys.argv[1]])
+        assert jax.process_count() == 2 and len(jax.devices()) == 4
         print("WORKER_OK")
         """
     )
@@ -113,20 +109,25 @@ def test_sweep_sharded_over_devices_and_processes_matches_one_device(tmp_path, f
         raw = (tmp_path / run / "checkpoint" / "state.msgpack").read_bytes()
         return serialization.msgpack_restore(raw)["params"]
 
-    multi, single = params("c"), params("b")
+    multi, single = params("c/rl"), params("b")
     leaves = zip(_leaves(multi), _leaves(single), strict=True)
     for x, y in leaves:
         np.testing.assert_allclose(x, y, rtol=1e-4, atol=1e-4)
-    rows = (tmp_path / "c" / "metrics.csv").read_text().splitlines()
+    rl = tmp_path / "c" / "rl"
+    rows = (rl / "metrics.csv").read_text().splitlines()
     assert (
         len(rows) == 1 + 3 * 2
         and rows[0] == (tmp_path / "b" / "metrics.csv").read_text().splitlines()[0]
     )
-    assert (tmp_path / "c" / "curves.png").stat().st_size > 0
+    for name in ("rl/curves.png", "fixed/results.json", "oracle/results.json", "report.md"):
+        assert (tmp_path / "c" / name).stat().st_size > 0, name
+    timings = json.loads((tmp_path / "c" / "timings.json").read_text())
+    assert {timings[p]["processes"] for p in ("rl", "fixed", "oracle")} == {2}
     # The two processes' evaluation (runs and episodes split over 4 devices) equals a
     # single-device evaluation of the checkpoint they wrote.
-    results = json.loads((tmp_path / "c" / "results.json").read_text())
-    _, trainer, runs, state = load_run(tmp_path / "c")
+    results = json.loads((rl / "results.json").read_text())
+    assert results["processes"] == 2 and results["devices"] == 4
+    _, trainer, runs, state = load_run(rl)
     again = evaluate_runs(trainer, runs, state, 4, devices=[jax.devices()[0]])
     assert len(results["runs"]) == len(again["runs"]) == 2
     for a, b in zip(results["runs"], again["runs"], strict=True):
