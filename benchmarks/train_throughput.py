@@ -7,6 +7,8 @@ through the episode and through the channel, Adam step. Compile time excluded; t
 
     python benchmarks/train_throughput.py --mode train --num-envs 256 --seeds 1
     python benchmarks/train_throughput.py --mode rollout --num-envs 256 --agents 5 --max-steps 128
+    XLA_FLAGS=--xla_force_host_platform_device_count=2 \
+        python benchmarks/train_throughput.py --mode train --sharded   # the sweep's device mesh
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from sparsecomm.configs import RLConfig
 from sparsecomm.envs.navigation import NavConfig
 from sparsecomm.rl import make_train
 from sparsecomm.rollout import rollout
+from sparsecomm.sharding import RUNS, make_mesh, place_runs, use_mesh
 
 
 @dataclasses.dataclass
@@ -44,6 +47,9 @@ class Args:
     """Updates per timed call (train mode)."""
     repeats: int = 3
     """Timed calls."""
+    sharded: bool = False
+    """Train mode: split the seeds and episodes over all local devices as ``run_sweep`` does
+    (``sparsecomm.sharding``); otherwise everything runs on the default device."""
 
 
 def main(a: Args) -> None:
@@ -51,9 +57,19 @@ def main(a: Args) -> None:
     cfg = RLConfig(env=env, num_envs=a.num_envs, remat=a.remat)
     tr = make_train(cfg)
     keys = jax.random.split(jax.random.key(0), a.seeds)
-    state = jax.jit(jax.vmap(tr.init, (0, None)))(keys, 0.0)
+    mesh = make_mesh(a.seeds, a.num_envs) if a.sharded and a.mode == "train" else None
+    spmd = RUNS if mesh is not None else None
+    with use_mesh(mesh):
+        state = jax.jit(jax.vmap(tr.init, (0, None), spmd_axis_name=spmd))(
+            place_runs(keys, mesh), 0.0
+        )
     if a.mode == "train":
-        fn = jax.jit(jax.vmap(lambda s: tr.update_chunk(s, a.updates)[0]))
+        update = jax.jit(jax.vmap(lambda s: tr.update_chunk(s, a.updates)[0], spmd_axis_name=spmd))
+
+        def fn(s):
+            with use_mesh(mesh):
+                return update(s)
+
         steps_per_call = a.seeds * a.updates * a.num_envs * a.max_steps
         arg = state
     else:
@@ -79,9 +95,11 @@ def main(a: Args) -> None:
     dev = jax.devices()[0]
     mem = dev.memory_stats() or {}
     peak_dev = mem.get("peak_bytes_in_use", 0) / 2**30
+    layout = dict(mesh.shape) if mesh is not None else "one device"
     print(
         f"{a.mode} K={a.agents} T={a.max_steps} envs={a.num_envs} seeds={a.seeds} "
-        f"remat={a.remat}: {steps_per_call / med:,.0f} env steps/s (median of {a.repeats}, "
+        f"remat={a.remat} ({layout}): {steps_per_call / med:,.0f} env steps/s "
+        f"(median of {a.repeats}, "
         f"{med:.2f} s/call; compile+first {compile_s:.1f} s) peak RSS {peak_rss:.2f} GiB"
         + (f", device peak {peak_dev:.2f} GiB" if peak_dev else "")
         + f" on {dev.platform} jax {jax.__version__}"
