@@ -69,9 +69,9 @@ def main() -> None:
     cfg = RLConfig(env=NavConfig(num_agents=a.agents, max_steps=a.max_steps), num_envs=a.num_envs)
     tr = make_train(cfg)
     state = jax.jit(tr.init)(jax.random.key(0), 0.0)
-    update = jax.jit(lambda s: tr.update_chunk(s, 1)[0])
-    sources = op_sources(update.lower(state).compile().as_text())
-    jax.block_until_ready(update(state))  # compile and warm up
+    update = jax.jit(lambda s: tr.update_chunk(s, 1)[0]).lower(state).compile()
+    sources = op_sources(update.as_text())
+    jax.block_until_ready(update(state))  # warm up
     t0 = time.perf_counter()
     jax.block_until_ready(update(state))
     wall = time.perf_counter() - t0

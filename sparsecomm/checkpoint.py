@@ -15,7 +15,7 @@ from pathlib import Path
 import jax
 from flax import serialization
 
-from sparsecomm.sharding import is_key, raw_keys, to_host
+from sparsecomm.sharding import is_key, is_primary, raw_keys, to_host
 
 
 def _atomic_write(path: Path, data: bytes) -> None:
@@ -34,7 +34,7 @@ def save(folder: str | os.PathLike, state, meta: dict) -> None:
     writes.
     """
     raw = to_host(state)
-    if jax.process_index() != 0:
+    if not is_primary():
         return
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

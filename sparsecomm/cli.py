@@ -19,7 +19,15 @@ from sparsecomm.configs import ILConfig, RLConfig, from_dict
 from sparsecomm.imitation import make_imitate
 from sparsecomm.report import bootstrap_ci, plot_curves
 from sparsecomm.rl import make_train
-from sparsecomm.sharding import RUNS, Distributed, make_mesh, place_runs, to_host, use_mesh
+from sparsecomm.sharding import (
+    RUNS,
+    Distributed,
+    is_primary,
+    make_mesh,
+    place_runs,
+    to_host,
+    use_mesh,
+)
 from sparsecomm.sweep import SweepSpec, run_sweep
 
 EVAL_SEED_OFFSET = 1_000_003
@@ -163,7 +171,6 @@ def render_run(trainer, actor_params, seed: int, out: Path, fps: int = 12) -> Pa
 def train(args: Train) -> dict:
     """Run ``sparsecomm train`` or ``sparsecomm imitate`` (by the type of ``args``)."""
     args.distributed.initialize()
-    primary = jax.process_index() == 0  # the process that writes files
     cfg = args.config
     kind = "imitate" if isinstance(args, Imitate) else "train"
     trainer = make_imitate(cfg) if kind == "imitate" else make_train(cfg)
@@ -194,8 +201,9 @@ def train(args: Train) -> dict:
         devices=jax.device_count(),
         processes=jax.process_count(),
     )
-    actor0 = jax.tree.map(lambda x: x[0], to_host(state.params["actor"]))  # every process
-    if not primary:
+    if args.gif:  # gathered on every process (a collective under jax.distributed)
+        actor0 = jax.tree.map(lambda x: x[0], to_host(state.params["actor"]))
+    if not is_primary():
         return results
     (args.out / "results.json").write_text(json.dumps(results, indent=2))
     print(f"results -> {args.out / 'results.json'}")

@@ -44,7 +44,7 @@ import numpy as np
 from sparsecomm import report_md
 from sparsecomm.configs import ChannelConfig, ILConfig, RLConfig
 from sparsecomm.report import plot_curves, plot_pareto
-from sparsecomm.sharding import Distributed
+from sparsecomm.sharding import Distributed, is_primary
 
 RL_LAMS = (0.01, 0.005, 0.001, 0.0)
 """Paper, section V: the RL penalty weights."""
@@ -306,10 +306,9 @@ def run_fixed(args: Reproduce, out: Path) -> dict:
         devices=jax.devices(),
     )
     results["source"] = "rl teams of lambda 0, channel code 'fixed'"
-    if jax.process_index() != 0:
-        return _budget(config, len(idx), (0.0,))
-    (out / "fixed").mkdir(parents=True, exist_ok=True)
-    (out / "fixed" / "results.json").write_text(json.dumps(results, indent=2))
+    if is_primary():
+        (out / "fixed").mkdir(parents=True, exist_ok=True)
+        (out / "fixed" / "results.json").write_text(json.dumps(results, indent=2))
     return _budget(config, len(idx), (0.0,))
 
 
@@ -320,7 +319,7 @@ def run_scripted(args: Reproduce, out: Path) -> dict:
 
     env = args.rl.env
     seeds, episodes = args.resolved("seeds"), args.resolved("eval_episodes")
-    if jax.process_index() != 0:  # scripted policies need no devices of other processes
+    if not is_primary():  # scripted policies need no devices of other processes
         return {"seeds": seeds, "episodes_per_seed": episodes}
     folder = out / "oracle"
     folder.mkdir(parents=True, exist_ok=True)
@@ -582,7 +581,7 @@ def write_report(out: Path, command: str = "") -> dict:
 def reproduce(args: Reproduce) -> dict:
     """Run the selected parts (in ``PARTS`` order), then write the figures and the report."""
     args.distributed.initialize()
-    primary = jax.process_index() == 0  # the process that writes files
+    primary = is_primary()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     timings_path = out / "timings.json"

@@ -66,6 +66,12 @@ class Distributed:
         jax.distributed.initialize(self.coordinator_address, n, i)
 
 
+def is_primary() -> bool:
+    """Whether this process writes the files (logs, checkpoints, results): process 0 under
+    ``jax.distributed``, always with one process."""
+    return jax.process_index() == 0
+
+
 def make_mesh(num_runs: int, num_envs: int, devices: Sequence | None = None) -> Mesh | None:
     """A ``(runs, episodes)`` mesh over ``devices`` (default: all local devices), or None.
 

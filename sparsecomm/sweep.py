@@ -24,7 +24,7 @@ from tqdm import tqdm
 
 from sparsecomm import checkpoint
 from sparsecomm.configs import to_dict
-from sparsecomm.sharding import RUNS, make_mesh, place_runs, to_host, use_mesh
+from sparsecomm.sharding import RUNS, is_primary, make_mesh, place_runs, to_host, use_mesh
 
 FIRST_COLUMNS = ["seed", "lam", "update", "env_steps", "episodes"]
 METRIC_ORDER = [
@@ -193,7 +193,7 @@ def run_sweep(
         "chunk": chunk,
     }
     ckpt = out / "checkpoint"
-    primary = jax.process_index() == 0  # the process that writes logs and checkpoints
+    primary = is_primary()  # writes the logs and checkpoints
     start = 0
     if resume and checkpoint.exists(ckpt):
         old = checkpoint.load_meta(ckpt)
