@@ -13,8 +13,8 @@ import dataclasses
 import shutil
 from pathlib import Path
 
-from sparsecomm.cli import Train, train
 from sparsecomm.configs import ChannelConfig, RLConfig
+from sparsecomm.experiment import Train, train
 
 if __name__ == "__main__":
     p = argparse.ArgumentParser()

@@ -2,8 +2,10 @@
 
 The actor of agent i reads its observation and the messages it received at the previous step,
 updates a GRU state, and outputs action logits and the signal ``z^{i->j}`` in [0, 1]^C for every
-recipient j != i. By default each agent has its own parameters: they are stacked on a leading
-agent axis and applied with ``vmap`` (one batched matmul per layer for the whole team).
+recipient j != i. By default the agents share one set of actor parameters and each reads a
+one-hot agent id beside its observation; with ``AgentConfig.share_params = False`` (the paper's
+choice) each agent has its own parameters, stacked on a leading agent axis and applied with
+``vmap`` (one batched matmul per layer for the whole team).
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
+from sparsecomm.channel import gate
 from sparsecomm.configs import AgentConfig
 
 
@@ -49,6 +52,8 @@ class Actor(nn.Module):
     num_actions: int
     num_recipients: int
     num_elements: int
+    message_bias_init: float = 0.0
+    message_gate: str = "sigmoid"
 
     @nn.compact
     def __call__(self, carry: jax.Array, x: jax.Array):
@@ -56,7 +61,9 @@ class Actor(nn.Module):
         h = nn.relu(nn.Dense(self.hidden)(h))
         carry, h = nn.GRUCell(self.gru, recurrent_kernel_init=orthogonal())(carry, h)
         logits = nn.Dense(self.num_actions)(h)
-        z = nn.sigmoid(nn.Dense(self.num_recipients * self.num_elements)(h))
+        bias = nn.initializers.constant(self.message_bias_init)
+        a = nn.Dense(self.num_recipients * self.num_elements, bias_init=bias)(h)
+        z = gate(self.message_gate, a)
         z = z.reshape(*z.shape[:-1], self.num_recipients, self.num_elements)
         return carry, logits, z
 
@@ -92,7 +99,15 @@ class Team:
         self.msg_in = (num_agents - 1) * num_elements
         self.in_dim = obs_dim + self.msg_in + (num_agents if cfg.share_params else 0)
         self.state_dim = state_dim
-        self.actor = Actor(cfg.hidden, cfg.gru, num_actions, num_agents - 1, num_elements)
+        self.actor = Actor(
+            cfg.hidden,
+            cfg.gru,
+            num_actions,
+            num_agents - 1,
+            num_elements,
+            cfg.message_bias_init,
+            cfg.message_gate,
+        )
         self.critic = Critic(cfg.critic_hidden, num_agents)
 
     def init(self, key: jax.Array) -> dict:

@@ -7,8 +7,10 @@ its calibration run; ``ours``: chosen here, by measurement where a number is giv
 from __future__ import annotations
 
 import dataclasses
+import math
 
-from sparsecomm.channel import CODE_NAMES, Code
+from sparsecomm.budget import BudgetConfig, check_budget
+from sparsecomm.channel import CODE_NAMES, GATES, Code
 from sparsecomm.envs.navigation import NavConfig
 
 CHANNEL_MODES = ("discrete", "continuous", "off", "reinforced")
@@ -61,6 +63,13 @@ class ChannelConfig:
     def code_obj(self) -> Code:
         return Code("float32" if self.mode == "continuous" else self.code, self.levels)
 
+    def max_bits_per_step(self, num_agents: int) -> int:
+        """The most payload bits a team of ``num_agents`` can send in one step: every element of
+        every link at the code's longest codeword."""
+        code = self.code_obj
+        per_element = code.max_paper_length if code.name == "paper" else code.fixed_width
+        return num_agents * (num_agents - 1) * self.num_elements * per_element
+
 
 @dataclasses.dataclass(frozen=True)
 class AgentConfig:
@@ -72,15 +81,31 @@ class AgentConfig:
     """GRU state size of the actor. SPEC calibration: 64."""
     critic_hidden: int = 128
     """Width of the critic's two hidden layers. SPEC calibration: 128."""
-    share_params: bool = False
-    """One set of actor parameters for all agents (with a one-hot agent id appended to the
-    input). Paper/SPEC: separate parameters per agent (False)."""
+    share_params: bool = True
+    """One set of actor parameters for all agents, with a one-hot agent id appended to the input.
+    ours: True. Paper/SPEC: separate parameters per agent (``--config.agent.no-share-params``,
+    the paper-faithful option). With separate parameters 3 of 10 untuned seeds stall at 0.16-0.21
+    success (one "lazy agent" never learns to read its messages, docs/notes.md); with shared ones
+    10 of 10 reach 0.99 (issue 14, H100, 65.5M env steps per run)."""
+    message_bias_init: float = 0.0
+    """Initial bias of the message head's pre-sigmoid output: 0 starts every element at z = 0.5
+    (flax's default, as the paper); -4 starts near silence (z = 0.018, ~0.3 payload bits per
+    link). ours: 0 (docs/budget.md measures -4)."""
+    message_gate: str = "sigmoid"
+    """How the message head's output becomes the signal z in [0, 1]: ``sigmoid`` (paper) or
+    ``hard``, a hard sigmoid whose silence is exact (z = 0, 0 bits) and reversible (a silent
+    element reopens when the receivers' gain outweighs the price of its bits;
+    ``sparsecomm.channel.gate``). ours: ``sigmoid`` (paper); docs/budget.md compares them."""
 
     def __post_init__(self):
         for name in ("hidden", "gru", "critic_hidden"):
             v = getattr(self, name)
             if not isinstance(v, int) or v < 1:
                 raise _bad("AgentConfig", name, v, "an integer >= 1")
+        if self.message_gate not in GATES:
+            raise _bad("AgentConfig", "message_gate", self.message_gate, f"one of {GATES}")
+        if not math.isfinite(self.message_bias_init):
+            raise _bad("AgentConfig", "message_bias_init", self.message_bias_init, "finite")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -93,6 +118,9 @@ class RLConfig:
     """The channel."""
     agent: AgentConfig = AgentConfig()
     """The networks."""
+    budget: BudgetConfig = BudgetConfig()
+    """The bit budget (payload bits per step) and the controller that sets the penalty weight to
+    meet it (``sparsecomm.budget``); ``budget.bits = None`` keeps the fixed lambda."""
     num_envs: int = 256
     """Episodes of ``env.max_steps`` steps collected per update. ours, by the tuning in
     docs/tuning.md (SPEC calibration: 64)."""
@@ -152,6 +180,7 @@ class RLConfig:
         for name, (ok, allowed) in checks.items():
             if not ok:
                 raise _bad("RLConfig", name, getattr(self, name), allowed)
+        check_budget_fits(self)
 
 
 def to_dict(config) -> dict:
@@ -192,6 +221,10 @@ class ILConfig:
     """The channel."""
     agent: AgentConfig = AgentConfig()
     """The learners' networks (the critic is unused)."""
+    budget: BudgetConfig = BudgetConfig(weight_init=1e-3)
+    """The bit budget and its controller, as in RL (``sparsecomm.budget``). ours: the weight
+    starts at 1e-3 when the controller engages (imitation's lambda has other units: its channel
+    collapses between lambda 0.003 and 0.01, docs/imitation.md)."""
     expert: str = "oracle"
     """``oracle``: the centralised scripted controller that sees every goal and sends nothing
     (the paper's "communication-free expert"). ``checkpoint``: a team trained by
@@ -242,3 +275,44 @@ class ILConfig:
         for name, (ok, allowed) in checks.items():
             if not ok:
                 raise _bad("ILConfig", name, getattr(self, name), allowed)
+        check_budget_fits(self)
+
+
+def check_budget_fits(config, budgets=None, name: str = "budget.bits") -> None:
+    """Refuse budgets the run cannot use: a budget needs the ``discrete`` channel (the only one
+    with a differentiable bit penalty) and at most the most bits the team's code can send per
+    step. ``budgets`` defaults to ``config.budget.bits``; ``None`` entries mean no budget."""
+    if budgets is None:
+        budgets = (config.budget.bits,)
+    budgets = [b for b in budgets if b is not None]
+    if not budgets:
+        return
+    owner = type(config).__name__
+    if config.channel.mode != "discrete":
+        raise ValueError(
+            f"{owner}.{name} needs channel.mode 'discrete' (the only mode with a bit penalty), "
+            f"got channel.mode {config.channel.mode!r}"
+        )
+    most = config.channel.max_bits_per_step(config.env.num_agents)
+    for b in budgets:
+        check_budget(b, f"{owner}.{name}", most)
+
+
+SMALL_TASK = NavConfig(num_agents=2, arena_half_width=0.5, position_limit=0.75, max_steps=64)
+"""A CPU-sized version of the navigation task: two agents (each still sees only the other's
+goal, so they must talk), an arena of half the width and 64-step episodes. ours: the oracle
+succeeds in ~99% of its episodes; one RL run at 64 episodes per update solves it (success > 0.95)
+in ~250 updates, about a minute on 2 CPU cores (docs/budget.md)."""
+
+PRESETS: dict[str, RLConfig] = {
+    "small": RLConfig(
+        env=SMALL_TASK,
+        agent=AgentConfig(message_gate="hard"),
+        budget=BudgetConfig(bits=4.0, halving_updates=30.0),
+        num_envs=64,
+        num_updates=600,
+    ),
+}
+"""Named starting points for ``sparsecomm train --preset NAME`` (``--config.*`` flags still
+override them). ``small``: :data:`SMALL_TASK` with a 4-bit budget (the README's first command;
+docs/budget.md measures it)."""

@@ -7,7 +7,9 @@ learners' own sampled action (``beta = 1``: behaviour cloning; ``beta -> 0``: DA
     L = mean over valid steps of  sum_i -log pi_i(a_expert_i,t | o_<=t)
                                   + lam * sum_{i, j != i, c} log2(|M| z_t^{i->j}[c] + 1)
 
-is backpropagated through the episode and through the channel: no learner ever sees its own goal
+(with a bit budget, ``ILConfig.budget``, the controller of :mod:`sparsecomm.budget` sets the
+weight in place of ``lam`` every update) is backpropagated through the episode and through the
+channel: no learner ever sees its own goal
 or an expert message, so the only way to predict the expert's action is to learn what to tell the
 others and how to read what they say.
 """
@@ -23,6 +25,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
+from sparsecomm import budget as bit_budget
 from sparsecomm.agents import Team
 from sparsecomm.configs import ILConfig
 from sparsecomm.envs.navigation import NavigationEnv
@@ -38,7 +41,11 @@ class ILState(struct.PyTreeNode):
     opt_state: optax.OptState
     key: jax.Array
     update: jax.Array
-    lam: jax.Array
+    budget: bit_budget.BudgetState  # this run's lambda, bit budget and penalty-weight controller
+
+    @property
+    def lam(self) -> jax.Array:
+        return self.budget.lam
 
 
 def oracle_expert(env: NavigationEnv) -> Expert:
@@ -90,14 +97,14 @@ class Imitator:
 def load_expert(config: ILConfig, env: NavigationEnv) -> Expert:
     if config.expert == "oracle":
         return oracle_expert(env)
-    from sparsecomm.cli import load_run
+    from sparsecomm.experiment import load_run
 
-    rl_config, trainer, runs, state = load_run(Path(config.expert_checkpoint))
+    rl_config, trainer, runs, actor = load_run(Path(config.expert_checkpoint))
     if rl_config.env != config.env:
         raise ValueError("expert_checkpoint was trained on a different task (env config)")
     if not 0 <= config.expert_index < len(runs):
         raise ValueError(f"expert_index must be in [0, {len(runs) - 1}], got {config.expert_index}")
-    params = jax.tree.map(lambda x: x[config.expert_index], state.params["actor"])
+    params = jax.tree.map(lambda x: x[config.expert_index], actor)
     return team_expert(trainer.team, rl_config.channel, params)
 
 
@@ -106,12 +113,12 @@ def make_imitate(config: ILConfig, expert: Expert | None = None) -> Imitator:
     expert = expert if expert is not None else load_expert(config, env)
     tx = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.lr))
 
-    def init(key, lam) -> ILState:
+    def init(key, lam, budget=jnp.nan) -> ILState:
+        """A run's first state; ``budget`` (payload bits per step, NaN: none) overrides lambda."""
         k_params, k_run = jax.random.split(key)
         params = team.init(k_params)
-        return ILState(
-            params, tx.init(params), k_run, jnp.zeros((), jnp.int32), jnp.asarray(lam, jnp.float32)
-        )
+        controller = bit_budget.init(config.budget, budget, lam)
+        return ILState(params, tx.init(params), k_run, jnp.zeros((), jnp.int32), controller)
 
     def beta_at(update):
         if config.beta_decay_updates == 0:
@@ -153,17 +160,25 @@ def make_imitate(config: ILConfig, expert: Expert | None = None) -> Imitator:
     def update(state: ILState):
         key, k_roll = jax.random.split(state.key)
         beta = beta_at(state.update)
-        grads, metrics = jax.grad(loss_fn, has_aux=True)(state.params, k_roll, state.lam, beta)
+        price = bit_budget.weight(state.budget)
+        grads, metrics = jax.grad(loss_fn, has_aux=True)(state.params, k_roll, price, beta)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         metrics["grad_norm"] = optax.tree.norm(grads)
-        return ILState(params, opt_state, key, state.update + 1, state.lam), metrics
+        # The team's own success counts only once the learners mostly drive (beta < 1/2): before,
+        # the expert's actions make the episodes succeed.
+        own_success = jnp.where(beta < 0.5, metrics["success_rate"], 0.0)
+        controller = bit_budget.update(
+            config.budget, state.budget, metrics["bits_per_step"], own_success
+        )
+        metrics.update(bit_budget.log(state.budget, price))
+        return ILState(params, opt_state, key, state.update + 1, controller), metrics
 
     def update_chunk(state: ILState, num_updates: int):
         return jax.lax.scan(lambda s, _: update(s), state, None, length=num_updates)
 
-    def train(key, lam):
-        return update_chunk(init(key, lam), config.num_updates)
+    def train(key, lam, budget=jnp.nan):
+        return update_chunk(init(key, lam, budget), config.num_updates)
 
     def evaluate(actor_params, key, num_episodes: int, greedy: bool = False):
         """Learners drive alone (no expert): the team's own success."""

@@ -1,18 +1,75 @@
-"""Statistics and figures: bootstrap confidence intervals, interquartile means, learning curves."""
+"""Statistics and figures: BCa bootstrap confidence intervals, interquartile means, curves."""
 
 from __future__ import annotations
 
 import csv
+import warnings
 from pathlib import Path
 
 import numpy as np
 from scipy import stats
 
 
-def bootstrap_ci(values, confidence: float = 0.95, statistic=np.mean, seed: int = 0):
-    """``(estimate, low, high)`` of ``statistic`` with a percentile bootstrap CI.
+def expanded_level(n: int, confidence: float = 0.95) -> float:
+    """Hesterberg's small-sample expansion of a bootstrap interval's nominal level.
 
-    With one value the interval is that value (no spread can be estimated).
+    A bootstrap distribution of the mean has the plug-in variance (divisor n, not n - 1) and
+    normal, not Student-t, tails, so any bootstrap interval of the mean is too narrow at small n:
+    at nominal 95%, percentile and plain BCa intervals cover the mean of 5 normal values about
+    85% of the time and of 10 values about 91%. The expansion asks the bootstrap for the level
+    whose normal quantile is ``sqrt(n / (n - 1)) * t_{n-1}`` (the Student-t quantile with the
+    n - 1 variance): 0.998 at n = 5, 0.983 at n = 10, tending to ``confidence``. T. Hesterberg,
+    "What teachers should know about the bootstrap", The American Statistician 69(4), 2015
+    (the "expanded percentile interval"; here the expanded level is given to BCa).
+    """
+    if n < 2:
+        raise ValueError(f"n must be >= 2, got {n}")
+    tail = (1 - confidence) / 2
+    z = np.sqrt(n / (n - 1)) * stats.t.ppf(1 - tail, n - 1)
+    return float(1 - 2 * stats.norm.sf(z))
+
+
+def student_t_ci(values, confidence: float = 0.95) -> tuple[float, float, float]:
+    """``(mean, low, high)``: the Student-t interval for the mean (exact for normal values)."""
+    x = np.asarray(values, np.float64).reshape(-1)
+    mean = float(x.mean())
+    half = stats.t.ppf(0.5 + confidence / 2, x.size - 1) * x.std(ddof=1) / np.sqrt(x.size)
+    return mean, float(mean - half), float(mean + half)
+
+
+def bootstrap_ci(
+    values,
+    confidence: float = 0.95,
+    statistic=np.mean,
+    seed: int = 0,
+    n_resamples: int = 10_000,
+):
+    """``(estimate, low, high)`` of ``statistic`` with a BCa bootstrap CI at an expanded level.
+
+    The interval is scipy's bias-corrected and accelerated (BCa) bootstrap, asked for the level
+    :func:`expanded_level` gives instead of ``confidence``, because at the sample sizes of a
+    seed sweep (5-10 runs) every bootstrap interval at the nominal level is too narrow. Measured
+    coverage (%) of the 95% interval for the mean over 1000 samples, 10,000 resamples each
+    (bimodal: 60% of values uniform in [0.85, 1], the rest in [0, 0.3]; tests/test_stats.py
+    checks the normal, n = 10 case):
+
+    ===================================  ======  ===========  =====================
+    values                               n       BCa          BCa at expanded level
+    ===================================  ======  ===========  =====================
+    normal                               5 / 10  85.4 / 90.9  92.3 / 95.1
+    exponential (skewed)                 5 / 10  79.2 / 88.4  87.2 / 92.5
+    bimodal (seeds that solve or stall)  5 / 10  91.6 / 96.6  91.7 / 98.6
+    ===================================  ======  ===========  =====================
+
+    No bootstrap interval leaves the range of the values, which misses the mean of a symmetric
+    continuous distribution with probability 2^(1-n): at n <= 5 the coverage cannot reach 95%
+    (at most 94% at n = 5, 75% at n = 3); use at least 6 values where coverage matters.
+
+    Degenerate cases: one value, or all values equal, give ``(v, v, v)`` (no spread can be
+    estimated). Where BCa has no answer (at n = 2 the expanded level is 1; BCa also returns NaN
+    when the bootstrap distribution is degenerate) the Student-t interval for the mean is used
+    instead (:func:`student_t_ci`, at ``confidence``); for another ``statistic`` the bounds
+    are then NaN. Deterministic: the resamples come from ``seed``.
     """
     x = np.asarray(values, np.float64).reshape(-1)
     if x.size == 0:
@@ -20,15 +77,26 @@ def bootstrap_ci(values, confidence: float = 0.95, statistic=np.mean, seed: int 
     est = float(statistic(x))
     if x.size == 1 or np.all(x == x[0]):
         return est, est, est
-    res = stats.bootstrap(
-        (x,),
-        statistic,
-        confidence_level=confidence,
-        n_resamples=10_000,
-        method="percentile",
-        rng=np.random.default_rng(seed),
-    )
-    return est, float(res.confidence_interval.low), float(res.confidence_interval.high)
+    level = expanded_level(x.size, confidence)
+    low = high = np.nan
+    if level < 1:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", stats.DegenerateDataWarning)
+            warnings.simplefilter("ignore", RuntimeWarning)
+            res = stats.bootstrap(
+                (x,),
+                statistic,
+                confidence_level=level,
+                n_resamples=n_resamples,
+                method="BCa",
+                rng=np.random.default_rng(seed),
+            )
+        low, high = float(res.confidence_interval.low), float(res.confidence_interval.high)
+    if np.isfinite(low) and np.isfinite(high):
+        return est, low, high
+    if statistic is np.mean:
+        return student_t_ci(x, confidence)
+    return est, float("nan"), float("nan")
 
 
 def iqm(values) -> float:
@@ -41,21 +109,32 @@ def read_csv(path: str | Path) -> dict[str, np.ndarray]:
         rows = list(csv.DictReader(f))
     if not rows:
         raise ValueError(f"{path} has no rows")
-    return {k: np.asarray([float(r[k]) for r in rows]) for k in rows[0]}
+    # Blank cells (the budget of a fixed-lambda run) read as NaN.
+    return {k: np.asarray([float(r[k] or "nan") for r in rows]) for k in rows[0]}
+
+
+def group_label(lam: float, budget: float) -> str:
+    """A run group's legend label: its lambda, or its budget (NaN: none)."""
+    return f"λ={lam:g}" if np.isnan(budget) else f"budget {budget:g} bits"
 
 
 def curves(data: dict[str, np.ndarray], metric: str):
-    """Per lambda: env steps and (seeds, updates) values of ``metric``."""
+    """Per run group: env steps and (seeds, updates) values of ``metric``. Groups are keyed
+    ``(budget, lam)`` (budget NaN for fixed-lambda runs), fixed lambdas first, then budgets
+    from the largest."""
     out = {}
-    for lam in np.unique(data["lam"]):
-        sel = data["lam"] == lam
+    budget = data.get("budget", np.full(data["lam"].shape, np.nan))
+    groups = {(float(b), float(lam)) for b, lam in zip(budget, data["lam"], strict=True)}
+    order = sorted(groups, key=lambda g: (not np.isnan(g[0]), -np.nan_to_num(g[0]), g[1]))
+    for b, lam in order:
+        sel = (data["lam"] == lam) & ((budget == b) | (np.isnan(budget) & np.isnan(b)))
         seeds = np.unique(data["seed"][sel])
         steps = np.unique(data["env_steps"][sel])
         vals = np.full((seeds.size, steps.size), np.nan)
         for i, s in enumerate(seeds):
             m = sel & (data["seed"] == s)
             vals[i, np.searchsorted(steps, data["env_steps"][m])] = data[metric][m]
-        out[float(lam)] = (steps, vals)
+        out[(b, lam)] = (steps, vals)
     return out
 
 
@@ -92,7 +171,8 @@ def plot_curves(
     window: int = 10,
     title: str | None = None,
 ) -> Path:
-    """Learning curves (mean over seeds, shaded min-max band) per lambda, one panel per metric."""
+    """Learning curves (mean over seeds, shaded min-max band) per lambda or budget, one panel
+    per metric."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -102,10 +182,10 @@ def plot_curves(
     metrics = [m for m in metrics if m in data]
     fig, axes = plt.subplots(1, len(metrics), figsize=(4.2 * len(metrics), 3.4), squeeze=False)
     for ax, metric in zip(axes[0], metrics, strict=True):
-        for lam, (steps, vals) in sorted(curves(data, metric).items()):
+        for (budget, lam), (steps, vals) in curves(data, metric).items():
             v = smooth(vals, window)
             mean = np.nanmean(v, 0)
-            ax.plot(steps, mean, label=f"λ={lam:g} ({vals.shape[0]} seeds)")
+            ax.plot(steps, mean, label=f"{group_label(lam, budget)} ({vals.shape[0]} seeds)")
             if vals.shape[0] > 1:
                 ax.fill_between(steps, np.nanmin(v, 0), np.nanmax(v, 0), alpha=0.2)
         ax.set_xlabel("env steps")

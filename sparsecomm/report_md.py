@@ -7,8 +7,8 @@ statistics::
     {"rl": {lam: stats}, "imitation": {lam: stats}, "baselines": {name: stats}}
 
 where ``stats[metric] = {"mean", "ci_low", "ci_high", "iqm", "n"}`` is computed over the runs
-(seeds) of that method: the mean with a 95% percentile-bootstrap interval and the interquartile
-mean. Lambdas are floats.
+(seeds) of that method: the mean with a 95% BCa bootstrap interval at Hesterberg's expanded level
+(:func:`sparsecomm.report.bootstrap_ci`) and the interquartile mean. Lambdas are floats.
 
 The claims (SPEC section 7) are decided by the explicit rules of :func:`decide_claims`, whose
 thresholds are the module constants below.
@@ -50,11 +50,17 @@ BITS_ABS_TOL = 0.1
 BITS_FACTOR = 2.0
 """Claims 4 and 5: "over 2-fold fewer bits" means mean bits per step at most 1/this of the
 smallest lambda's."""
-REWARD_TOL = 0.1
-"""Claim 4 ("reward not substantially hurt"): a lambda's mean group reward may fall below the
-smallest lambda's by at most this fraction of the gain communication brings (smallest lambda's
-reward minus the no-communication baseline's; of the smallest lambda's |reward| when no baseline
-was run)."""
+KEEP_MEAN_TOL = 0.1
+"""Claim 4 ("reward not substantially hurt") is judged on task performance, success rate and
+episode length, not on group reward: group reward pays +250 per step inside the goal radius, so
+a team that hovers there instead of finishing can score more while succeeding less. A lambda
+keeps the smallest lambda's performance when, for each of the two metrics, its mean is at most
+this fraction worse than the smallest lambda's mean (success >= 90% of it, episode length <= 110%
+of it), and its 95% CI reaches within ``KEEP_CI_TOL`` of that mean."""
+KEEP_CI_TOL = 0.05
+"""Claim 4: the success CI's upper bound must reach >= (1 - this) x the smallest lambda's mean
+success and the episode-length CI's lower bound <= (1 + this) x its mean length; otherwise the
+runs show a loss larger than this fraction (beyond the CI), whatever the mean."""
 IL_MIN_SUCCESS = 0.5
 """Claim 5 ("imitation learns"): the smallest imitation lambda must reach this mean success."""
 IL_SUCCESS_TOL = 0.1
@@ -68,7 +74,8 @@ CLAIMS = (
     "Without communication, agents virtually never find their goals.",
     "With communication, agents find their goals (for every RL lambda).",
     "Bits per step fall as lambda rises (RL).",
-    "Over 2-fold fewer bits with reward not substantially hurt, except at the largest lambda (RL).",
+    "Over 2-fold fewer bits with reward not substantially hurt (judged on success rate and "
+    "episode length), except at the largest lambda (RL).",
     "Imitation learns sparse communication from expert actions alone, and collapses at the "
     "largest lambda (0.001).",
 )
@@ -190,36 +197,45 @@ def claim_bits_fall(summary: dict) -> Claim:
     )
 
 
+def keeps_performance(st: dict, ref: dict) -> bool:
+    """Claim 4's test: ``st`` (a method's stats) keeps the success rate and episode length of
+    ``ref`` (the smallest lambda's) within ``KEEP_MEAN_TOL`` (means) and ``KEEP_CI_TOL`` (CIs)."""
+    s, s0 = st["success_rate"], ref["success_rate"]["mean"]
+    n, n0 = st["episode_length"], ref["episode_length"]["mean"]
+    success = s["mean"] >= (1 - KEEP_MEAN_TOL) * s0 and s["ci_high"] >= (1 - KEEP_CI_TOL) * s0
+    length = n["mean"] <= (1 + KEEP_MEAN_TOL) * n0 and n["ci_low"] <= (1 + KEEP_CI_TOL) * n0
+    return bool(success and length)
+
+
 def claim_sparse_rl(summary: dict) -> Claim:
     rl = summary.get("rl")
     if not rl or len(rl) < 3:
         return _missing(4, "an RL sweep with at least three lambdas")
     lams = sorted(rl)
     ref = rl[lams[0]]
-    base = summary.get("baselines", {}).get("no_comm")
-    r0 = ref["group_reward"]["mean"]
-    gain = abs(r0 - base["group_reward"]["mean"]) if base is not None else abs(r0)
-    floor = r0 - REWARD_TOL * gain
     middle = lams[1:-1]
-    not_hurt = {lam: rl[lam]["group_reward"]["mean"] >= floor for lam in middle}
+    kept = {lam: keeps_performance(rl[lam], ref) for lam in middle}
     sparse = {
         lam: rl[lam]["bits_per_step"]["mean"] <= ref["bits_per_step"]["mean"] / BITS_FACTOR
         for lam in middle
     }
-    held = all(not_hurt.values()) and any(sparse[lam] and not_hurt[lam] for lam in middle)
+    held = all(kept.values()) and any(sparse[lam] and kept[lam] for lam in middle)
     rows = "; ".join(
-        f"λ={lam:g}: bits {fmt(rl[lam]['bits_per_step'])}, reward {fmt(rl[lam]['group_reward'])}"
+        f"λ={lam:g}: bits {fmt(rl[lam]['bits_per_step'])}, success "
+        f"{fmt(rl[lam]['success_rate'])}, length {fmt(rl[lam]['episode_length'])}"
         for lam in lams
     )
     return Claim(
         4,
         CLAIMS[3],
         held,
-        f"{rows}; reward floor {floor:.4g}"
-        + (f" (no-comm reward {base['group_reward']['mean']:.4g})" if base is not None else ""),
-        f"held if every λ strictly between the smallest and the largest keeps mean reward >= "
-        f"smallest-λ reward - {REWARD_TOL} x (its gain over no-comm), and at least one of them "
-        f"sends <= 1/{BITS_FACTOR:g} of the smallest λ's mean bits",
+        f"{rows}; performance kept at: {[f'{x:g}' for x in middle if kept[x]] or 'none'}",
+        f"held if every λ strictly between the smallest and the largest keeps mean success >= "
+        f"{1 - KEEP_MEAN_TOL:.0%} and mean episode length <= {1 + KEEP_MEAN_TOL:.0%} of the "
+        f"smallest λ's, with its success CI reaching >= {1 - KEEP_CI_TOL:.0%} and its length CI "
+        f"<= {1 + KEEP_CI_TOL:.0%} of them (group reward is not used: hovering near the goal "
+        f"raises it), and at least one of them sends <= 1/{BITS_FACTOR:g} of the smallest λ's "
+        "mean bits",
     )
 
 

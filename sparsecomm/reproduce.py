@@ -1,7 +1,7 @@
 """``sparsecomm reproduce``: the paper's experiments, the baselines, the figures and a report.
 
 Parts (each written to its own folder under ``out``, each sweep one vmapped program through
-:func:`sparsecomm.cli.train`, so a part that dies resumes from its checkpoint):
+:func:`sparsecomm.experiment.train`, so a part that dies resumes from its checkpoint):
 
 ============== ===============================================================================
 ``rl``         actor-critic through the channel, lambda in {0.01, 0.005, 0.001, 0} (Fig. 1, 2)
@@ -16,11 +16,15 @@ Parts (each written to its own folder under ``out``, each sweep one vmapped prog
                the channel (``ChannelConfig.mode = "reinforced"``)
 ``oracle``     the centralised scripted expert (upper bound, sends nothing) and, for reference,
                the best scripted policy without communication (drive to the centre)
+``rl_budget``  RL with a bit budget in {64, 32, 16, 8, 4} payload bits per step instead of a
+               fixed lambda (``sparsecomm.budget``; compared with the ``rl`` part's lambda 0)
+``il_budget``  imitation of the oracle with the same budgets (compared with ``imitation``'s 0)
 ============== ===============================================================================
 
 Then :func:`write_report` reads every part found under ``out`` (also parts run earlier) and
 writes ``fig1.png``, ``fig2.png``, ``fig3.png``, ``pareto.png``, ``table1.md``, ``report.md``
-and ``summary.json``. All numbers in them come from the runs' ``results.json`` and
+and ``summary.json``, and with the budget parts ``frontier.png`` and ``budget_summary.json``
+(:mod:`sparsecomm.frontier`). All numbers in them come from the runs' ``results.json`` and
 ``metrics.csv``.
 """
 
@@ -41,7 +45,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from sparsecomm import report_md
+from sparsecomm import frontier, report_md
 from sparsecomm.configs import ChannelConfig, ILConfig, RLConfig
 from sparsecomm.report import plot_curves, plot_pareto
 from sparsecomm.sharding import Distributed, is_primary
@@ -50,10 +54,23 @@ RL_LAMS = (0.01, 0.005, 0.001, 0.0)
 """Paper, section V: the RL penalty weights."""
 IL_LAMS = (0.001, 0.0007, 0.0004, 0.0001, 0.0)
 """Paper, section V and Table I: the imitation penalty weights (0 added as the reference)."""
-PARTS = ("rl", "imitation", "no_comm", "continuous", "fixed", "rcl", "oracle")
+BUDGETS = (64.0, 32.0, 16.0, 8.0, 4.0)
+"""Issue 14: the bit budgets of the frontier (payload bits per step; lambda 0 sends ~160)."""
+PARTS = (
+    "rl",
+    "imitation",
+    "no_comm",
+    "continuous",
+    "fixed",
+    "rcl",
+    "oracle",
+    "rl_budget",
+    "il_budget",
+)
 """Every part, in the order they run."""
-FULL = {"seeds": 5, "eval_episodes": 500, "chunk": 10}
-"""Defaults of the full run for fields left at None (budgets: the RLConfig/ILConfig defaults)."""
+FULL = {"seeds": 10, "eval_episodes": 500, "chunk": 10}
+"""Defaults of the full run for fields left at None (budgets: the RLConfig/ILConfig defaults).
+10 seeds: the 95% CIs (``report.bootstrap_ci``) need at least 6 runs to cover honestly."""
 QUICK = {
     "seeds": 2,
     "rl_updates": 10,
@@ -83,7 +100,7 @@ class Reproduce:
     """Tiny budgets (see ``QUICK``) for fields left unset: every artefact in a few minutes on a
     laptop CPU. The numbers then say nothing about the paper."""
     seeds: int | None = None
-    """Seeds per lambda and per baseline. None: 5 (2 with --quick)."""
+    """Seeds per lambda and per baseline. None: 10 (2 with --quick)."""
     rl_updates: int | None = None
     """Updates of every RL run (sweep and RL baselines). None: ``rl.num_updates`` (10 quick)."""
     rl_envs: int | None = None
@@ -101,6 +118,9 @@ class Reproduce:
     """RL penalty weights. Paper: 0.01, 0.005, 0.001, 0."""
     il_lams: tuple[float, ...] = IL_LAMS
     """Imitation penalty weights. Paper: 0.001, 0.0007, 0.0004, 0.0001 (and 0 here)."""
+    budgets: tuple[float, ...] = BUDGETS
+    """Bit budgets of the ``rl_budget`` and ``il_budget`` parts (payload bits per step). ours,
+    issue 14."""
     rcl_bit_cost: float = 0.001
     """RCL's reward per payload bit sent, negated (paper reward units). The paper gives none.
     ours: 0.001, the price per bit that the surrogate penalty sets at the smallest non-zero RL
@@ -145,6 +165,10 @@ class Reproduce:
         if "fixed" in self.parts and 0.0 not in self.rl_lams:
             raise ValueError(
                 f"Reproduce.rl_lams must contain 0 for the fixed part, got {self.rl_lams}"
+            )
+        if not self.budgets or any(not np.isfinite(b) or b < 0 for b in self.budgets):
+            raise ValueError(
+                f"Reproduce.budgets must be non-empty, finite and >= 0, got {self.budgets}"
             )
         if not (np.isfinite(self.rcl_bit_cost) and self.rcl_bit_cost >= 0):
             raise ValueError(f"Reproduce.rcl_bit_cost must be >= 0, got {self.rcl_bit_cost!r}")
@@ -243,8 +267,8 @@ def _rl_config(args: Reproduce, channel: ChannelConfig | None = None) -> RLConfi
     )
 
 
-def _train_args(args: Reproduce, config, lams, out: Path, imitate: bool = False):
-    from sparsecomm.cli import Imitate, Train
+def _train_args(args: Reproduce, config, lams, out: Path, imitate: bool = False, budgets=None):
+    from sparsecomm.experiment import Imitate, Train
 
     updates = config.num_updates
     chunk = args.resolved("chunk") or max(updates, 1)
@@ -252,6 +276,7 @@ def _train_args(args: Reproduce, config, lams, out: Path, imitate: bool = False)
         config=config,
         seeds=args.resolved("seeds"),
         lams=tuple(float(x) for x in lams),
+        budgets=budgets,
         out=out,
         chunk=chunk,
         checkpoint_every=5,
@@ -276,10 +301,10 @@ def _budget(config, seeds: int, lams) -> dict:
 def run_fixed(args: Reproduce, out: Path) -> dict:
     """The ``rl`` teams of lambda 0, evaluated with the fixed-width code on the wire."""
     from sparsecomm import checkpoint
-    from sparsecomm.cli import evaluate_runs
     from sparsecomm.configs import from_dict
+    from sparsecomm.experiment import evaluate_runs
     from sparsecomm.rl import make_train
-    from sparsecomm.sweep import SweepSpec
+    from sparsecomm.sweep import run_arrays, spec_from_meta
 
     ckpt = out / "rl" / "checkpoint"
     if not checkpoint.exists(ckpt):
@@ -288,16 +313,15 @@ def run_fixed(args: Reproduce, out: Path) -> dict:
         )
     meta = checkpoint.load_meta(ckpt)
     config = from_dict(RLConfig, meta["config"])
-    runs = SweepSpec(meta["seeds"], tuple(meta["lams"])).runs()
-    keys = jax.random.split(jax.random.key(0), len(runs))
+    runs = spec_from_meta(meta).runs()
     # A jitted init as the restore template (cli.load_run's eager one is slower to trace).
-    template = jax.jit(jax.vmap(make_train(config).init))(keys, np.zeros(len(runs), np.float32))
+    template = jax.jit(jax.vmap(make_train(config).init))(*run_arrays(config, runs))
     state = checkpoint.load(ckpt, template)
-    idx = [i for i, (_, lam) in enumerate(runs) if lam == 0.0]
+    idx = [i for i, run in enumerate(runs) if run.lam == 0.0 and run.budget is None]
     if not idx:
         raise ValueError(f"the rl part in {out / 'rl'} has no lambda = 0 runs")
     fixed = dataclasses.replace(config, channel=dataclasses.replace(config.channel, code="fixed"))
-    sub = jax.tree.map(lambda x: x[np.asarray(idx)], state)
+    sub = jax.tree.map(lambda x: x[np.asarray(idx)], state.params["actor"])
     results = evaluate_runs(
         make_train(fixed),
         [runs[i] for i in idx],
@@ -314,8 +338,8 @@ def run_fixed(args: Reproduce, out: Path) -> dict:
 
 def run_scripted(args: Reproduce, out: Path) -> dict:
     """The oracle and the centre policy over ``seeds`` x ``eval_episodes`` episodes."""
-    from sparsecomm.cli import EVAL_SEED_OFFSET
     from sparsecomm.envs.oracle import center_actions, oracle_actions, run_policy_episodes
+    from sparsecomm.experiment import EVAL_SEED_OFFSET
 
     env = args.rl.env
     seeds, episodes = args.resolved("seeds"), args.resolved("eval_episodes")
@@ -347,7 +371,7 @@ def run_scripted(args: Reproduce, out: Path) -> dict:
 
 def run_part(args: Reproduce, part: str) -> dict:
     """Run one part; returns its budget."""
-    from sparsecomm.cli import train
+    from sparsecomm.experiment import train
 
     out = args.out
     seeds = args.resolved("seeds")
@@ -355,13 +379,20 @@ def run_part(args: Reproduce, part: str) -> dict:
         cfg = _rl_config(args)
         train(_train_args(args, cfg, args.rl_lams, out / "rl"))
         return _budget(cfg, seeds, args.rl_lams)
-    if part == "imitation":
+    if part == "rl_budget":
+        cfg = _rl_config(args)
+        train(_train_args(args, cfg, (0.0,), out / part, budgets=args.budgets))
+        return _budget(cfg, seeds, (0.0,)) | {"bit_budgets": list(args.budgets)}
+    if part in ("imitation", "il_budget"):
         cfg = dataclasses.replace(
             args.il,
             expert="oracle",
             num_updates=args.resolved("il_updates"),
             num_envs=args.resolved("il_envs"),
         )
+        if part == "il_budget":
+            train(_train_args(args, cfg, (0.0,), out / part, imitate=True, budgets=args.budgets))
+            return _budget(cfg, seeds, (0.0,)) | {"bit_budgets": list(args.budgets)}
         train(_train_args(args, cfg, args.il_lams, out / "imitation", imitate=True))
         return _budget(cfg, seeds, args.il_lams)
     if part in ("no_comm", "continuous", "rcl"):
@@ -414,6 +445,17 @@ def collect(out: Path) -> dict:
         auc["rcl"] = next(iter(report_md.training_mean(out / "rcl" / "metrics.csv").values()))
     if auc:
         summary["training_success"] = auc
+    sources = {
+        learner: [doc for doc in (_read(out / p / "results.json") for p in parts) if doc]
+        for learner, parts in (
+            ("rl", ("rl", "rl_budget")),
+            ("imitation", ("imitation", "il_budget")),
+        )
+    }
+    if (out / "rl_budget").exists() or (out / "il_budget").exists():
+        summary["frontier"] = [
+            r for lr, docs in sources.items() for d in docs for r in frontier.rows(d, lr)
+        ]
     return summary
 
 
@@ -464,6 +506,8 @@ def write_figures(out: Path, summary: dict) -> list[Path]:
                 title="Fig. 3: imitation of the oracle, loss and bits per step",
             )
         )
+    if summary.get("frontier"):
+        made.append(frontier.plot(summary["frontier"], out / "frontier.png"))
     pts = _points(summary)
     if pts:
         made.append(
@@ -501,12 +545,62 @@ def _budget_lines(timings: dict) -> list[str]:
     return lines
 
 
+def _frontier_lines(table: list[dict]) -> list[str]:
+    """The bit-budget section: the frontier table, the budget-matched verdicts of claims 4 and
+    5 (labelled as such), and issue 14's targets."""
+    md = ["## Bit budgets: the frontier (not in the paper)", ""]
+    md += [
+        "| learner | budget | λ | seeds | success | episode length | payload bits/step | "
+        "wire bits/step |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for r in table:
+        cells = [
+            f"{r[k][0]:.4g} [{r[k][1]:.4g}, {r[k][2]:.4g}]"
+            for k in ("success", "episode_length", "payload_bits", "wire_bits")
+        ]
+        budget = "-" if r["budget"] is None else f"{r['budget']:g}"
+        md.append(
+            f"| {r['learner']} | {budget} | {r['lam']:g} | {r['seeds']} | "
+            + " | ".join(cells)
+            + " |"
+        )
+    md.append("")
+    for c in frontier.budget_claims(table):
+        verdict = "held" if c["held"] else "not held"
+        md.append(
+            f"- **{c['label']}: {verdict}** (budgets that hold: {c['budgets_held'] or 'none'})."
+        )
+    for t in frontier.targets(table):
+        met = "met" if t["met"] else "not met"
+        md.append(
+            f"- Target, {t['learner']} budget {t['budget']:g}: **{met}** (success "
+            f"{t['success_ratio']:.1%} of λ=0's, payload bits {t['bits']:.3g})."
+        )
+    return md + [""]
+
+
+def _seeds_text(summary: dict) -> str:
+    """How many runs (seeds) each method's statistics are over, e.g. "10 seeds per method"."""
+    counts = set()
+    for key in ("rl", "imitation", "baselines"):
+        for st in summary.get(key, {}).values():
+            counts.add(next(iter(st.values()))["n"])
+    if len(counts) == 1:
+        return f"{counts.pop()} seeds per method"
+    return f"{min(counts)}-{max(counts)} seeds per method, the runs column" if counts else "seeds"
+
+
 def write_report(out: Path, command: str = "") -> dict:
     """Figures, table1.md, summary.json and report.md from every part found in ``out``."""
     summary = collect(out)
     if not summary:
         raise ValueError(f"no part results found in {out}")
-    report_md.write_summary(summary, out / "summary.json")
+    report_md.write_summary(
+        {k: v for k, v in summary.items() if k != "frontier"}, out / "summary.json"
+    )
+    if summary.get("frontier"):
+        frontier.write_rows(summary["frontier"], out / "budget_summary.json")
     figures = write_figures(out, summary)
     if "imitation" in summary:
         (out / "table1.md").write_text(report_md.table1(summary["imitation"]))
@@ -516,9 +610,10 @@ def write_report(out: Path, command: str = "") -> dict:
     md += [
         "Generated by `sparsecomm reproduce` from the runs in this folder; every number below was "
         "measured by those runs (final evaluation of each trained run over fresh episodes, "
-        "sampled actions). Statistics over runs (seeds): mean with a 95% percentile-bootstrap "
-        "CI, and the interquartile mean (IQM). Env steps count episodes x max_steps (the "
-        "scan length), masked steps after an episode ended included.",
+        f"sampled actions). Statistics over runs ({_seeds_text(summary)}): mean with a 95% "
+        "BCa bootstrap CI at Hesterberg's expanded level (Student-t where BCa has no answer; "
+        "`sparsecomm.report.bootstrap_ci`), and the interquartile mean (IQM). Env steps count "
+        "episodes x max_steps (the scan length), masked steps after an episode ended included.",
         "",
     ]
     if command:
@@ -557,6 +652,8 @@ def write_report(out: Path, command: str = "") -> dict:
         md += ["## Baselines", ""]
         rows = {BASELINE_LABELS[k]: v for k, v in summary["baselines"].items()}
         md.append(report_md.metrics_table(rows, "method"))
+    if summary.get("frontier"):
+        md += _frontier_lines(summary["frontier"])
     if "training_success" in summary:
         md += ["## Mean success over training (area under the learning curve)", ""]
         md += ["| run | mean success over training |", "|---|---|"]

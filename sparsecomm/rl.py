@@ -13,7 +13,9 @@ targets, and ``A = G - V(S_t)`` held constant (standardised per agent by default
 weight ``w = lam * reward_scale / std(A)`` (``/ std(A)`` only when advantages are standardised)
 makes this the gradient of the paper's objective ``E[sum_t gamma^t r_t] - lam E[sum_t penalty_t]``
 up to one positive factor: ``lam`` is the price of one bit in the paper's reward units
-(optionally switched on late, ``RLConfig.penalty_delay`` and ``penalty_ramp``). The
+(optionally switched on late, ``RLConfig.penalty_delay`` and ``penalty_ramp``). With a bit
+budget (``RLConfig.budget``, ``sparsecomm.budget``) the price is set each update by the
+controller from the bits the update's episodes really sent, inside the compiled update. The
 gradient of the whole expression is taken through the episode: through every agent's GRU and
 through the channel from every receiver's log-probabilities into every sender's parameters.
 
@@ -32,6 +34,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
+from sparsecomm import budget as bit_budget
 from sparsecomm.agents import Team
 from sparsecomm.configs import RLConfig
 from sparsecomm.envs.navigation import NavigationEnv
@@ -45,7 +48,11 @@ class TrainState(struct.PyTreeNode):
     opt_state: optax.OptState
     key: jax.Array
     update: jax.Array  # () int32, updates done
-    lam: jax.Array  # () float32, this run's bit-penalty weight
+    budget: bit_budget.BudgetState  # this run's lambda, bit budget and penalty-weight controller
+
+    @property
+    def lam(self) -> jax.Array:
+        return self.budget.lam
 
 
 def discounted_targets(rewards, values, dones, valid, gamma, gae_lambda):
@@ -133,12 +140,12 @@ def make_train(config: RLConfig) -> Trainer:
         starve the actors."""
         return {k: clip.update(g, clip.init(g))[0] for k, g in grads.items()}
 
-    def init(key: jax.Array, lam) -> TrainState:
+    def init(key: jax.Array, lam, budget=jnp.nan) -> TrainState:
+        """A run's first state; ``budget`` (payload bits per step, NaN: none) overrides lambda."""
         k_params, k_run = jax.random.split(key)
         params = team.init(k_params)
-        return TrainState(
-            params, tx.init(params), k_run, jnp.zeros((), jnp.int32), jnp.asarray(lam, jnp.float32)
-        )
+        controller = bit_budget.init(config.budget, budget, lam)
+        return TrainState(params, tx.init(params), k_run, jnp.zeros((), jnp.int32), controller)
 
     def loss_fn(params, key, lam, update):
         traj: Trajectory = rollout(
@@ -196,23 +203,26 @@ def make_train(config: RLConfig) -> Trainer:
 
     def update(state: TrainState):
         key, k_roll = jax.random.split(state.key)
-        grads, metrics = jax.grad(loss_fn, has_aux=True)(
-            state.params, k_roll, state.lam, state.update
-        )
+        price = bit_budget.weight(state.budget)
+        grads, metrics = jax.grad(loss_fn, has_aux=True)(state.params, k_roll, price, state.update)
         updates, opt_state = tx.update(clip_parts(grads), state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         metrics["actor_grad_norm"] = optax.tree.norm(grads["actor"])
         metrics["critic_grad_norm"] = optax.tree.norm(grads["critic"])
-        new = TrainState(params, opt_state, key, state.update + 1, state.lam)
+        controller = bit_budget.update(
+            config.budget, state.budget, metrics["bits_per_step"], metrics["success_rate"]
+        )
+        metrics.update(bit_budget.log(state.budget, price))
+        new = TrainState(params, opt_state, key, state.update + 1, controller)
         return new, metrics
 
     def update_chunk(state: TrainState, num_updates: int):
         """``num_updates`` updates in one ``lax.scan``; metrics stacked on a leading axis."""
         return jax.lax.scan(lambda s, _: update(s), state, None, length=num_updates)
 
-    def train(key: jax.Array, lam) -> tuple[TrainState, dict]:
-        """The whole run, pure: vmap it over keys and lambdas for a sweep."""
-        return update_chunk(init(key, lam), config.num_updates)
+    def train(key: jax.Array, lam, budget=jnp.nan) -> tuple[TrainState, dict]:
+        """The whole run, pure: vmap it over keys, lambdas and budgets for a sweep."""
+        return update_chunk(init(key, lam, budget), config.num_updates)
 
     def evaluate(actor_params, key: jax.Array, num_episodes: int, greedy: bool = False):
         traj = rollout(team, env, config.channel, actor_params, key, num_episodes, greedy=greedy)

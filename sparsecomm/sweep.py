@@ -1,9 +1,10 @@
 """Seeds x lambdas as one vmapped program, with progress, logs and resumable checkpoints.
 
-Every learner (RL, imitation) exposes ``init(key, lam) -> state`` and
+Every learner (RL, imitation) exposes ``init(key, lam, budget) -> state`` and
 ``update_chunk(state, n) -> (state, metrics stacked over n updates)``. :func:`run_sweep` vmaps
-them over the flattened grid of (lambda, seed) runs, advances all runs together chunk by chunk,
-and after each chunk appends one CSV row per run and update, writes TensorBoard scalars, updates
+them over the flattened grid of (lambda, budget, seed) runs (a budget of NaN is none), advances
+all runs together chunk by chunk, and after each chunk appends one CSV row per run and update,
+writes TensorBoard scalars, updates
 the progress bar, and every ``checkpoint_every`` chunks saves the whole batched state. A run that
 dies resumes from its last checkpoint and ends with the same parameters as an uninterrupted one.
 """
@@ -13,9 +14,11 @@ from __future__ import annotations
 import csv
 import dataclasses
 import functools
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -26,7 +29,7 @@ from sparsecomm import checkpoint
 from sparsecomm.configs import to_dict
 from sparsecomm.sharding import RUNS, is_primary, make_mesh, place_runs, to_host, use_mesh
 
-FIRST_COLUMNS = ["seed", "lam", "update", "env_steps", "episodes"]
+FIRST_COLUMNS = ["seed", "lam", "budget", "update", "env_steps", "episodes"]
 METRIC_ORDER = [
     "group_reward",
     "episode_length",
@@ -37,23 +40,64 @@ METRIC_ORDER = [
 ]
 
 
+class Run(NamedTuple):
+    """One run of a sweep."""
+
+    seed: int
+    """Seed offset s (the run uses ``config.seed + s``)."""
+    lam: float
+    """Bit-penalty weight (with a budget: the weight until the controller engages)."""
+    budget: float | None
+    """Payload bits per step that the controller meets, or ``None`` (fixed lambda)."""
+
+    @property
+    def group(self) -> str:
+        """The name of the run's (lambda, budget) group, shared by its seeds."""
+        return f"{self.lam:g}" if self.budget is None else f"budget={self.budget:g}/{self.lam:g}"
+
+
 @dataclasses.dataclass(frozen=True)
 class SweepSpec:
-    """The runs of a sweep: every lambda with every seed."""
+    """The runs of a sweep: every lambda with every budget and every seed."""
 
     seeds: int = 1
-    """Number of seeds per lambda (seed s uses ``config.seed + s``)."""
+    """Number of seeds per (lambda, budget) (seed s uses ``config.seed + s``)."""
     lams: tuple[float, ...] = (0.0,)
     """Bit-penalty weights to sweep."""
+    budgets: tuple[float | None, ...] = (None,)
+    """Bit budgets (payload bits per step) to sweep; ``None``: the fixed lambda."""
 
     def __post_init__(self):
         if self.seeds < 1:
             raise ValueError(f"seeds must be >= 1, got {self.seeds}")
         if not self.lams or any(not np.isfinite(x) or x < 0 for x in self.lams):
             raise ValueError(f"lams must be non-empty, finite and >= 0, got {self.lams}")
+        if not self.budgets or any(
+            b is not None and (not math.isfinite(b) or b < 0) for b in self.budgets
+        ):
+            raise ValueError(f"budgets must be non-empty, finite and >= 0, got {self.budgets}")
 
-    def runs(self) -> list[tuple[int, float]]:
-        return [(s, float(lam)) for lam in self.lams for s in range(self.seeds)]
+    def runs(self) -> list[Run]:
+        return [
+            Run(s, float(lam), None if b is None else float(b))
+            for lam in self.lams
+            for b in self.budgets
+            for s in range(self.seeds)
+        ]
+
+
+def run_arrays(config, runs: list[Run]):
+    """The learners' ``init`` arguments of every run: PRNG keys, lambdas and budgets (NaN for
+    none), each with a leading run axis."""
+    keys = jnp.stack([jax.random.key(config.seed + r.seed) for r in runs])
+    lams = jnp.asarray([r.lam for r in runs], jnp.float32)
+    budgets = jnp.asarray([np.nan if r.budget is None else r.budget for r in runs], jnp.float32)
+    return keys, lams, budgets
+
+
+def spec_from_meta(meta: dict) -> SweepSpec:
+    """The sweep a checkpoint's metadata describes."""
+    return SweepSpec(meta["seeds"], tuple(meta["lams"]), tuple(meta.get("budgets", [None])))
 
 
 def _row_metrics(metrics: dict) -> list[str]:
@@ -121,14 +165,18 @@ class _Log:
         for u in range(n):
             upd = first_update + u
             env_steps = upd * self.steps
-            for r, (seed, lam) in enumerate(self.runs):
+            for r, run in enumerate(self.runs):
                 values = [metrics[k][r, u] for k in names]
+                budget = "" if run.budget is None else f"{run.budget:g}"
                 self.csv.writerow(
-                    [seed, lam, upd, env_steps, upd * self.episodes] + [f"{v:.6g}" for v in values]
+                    [run.seed, run.lam, budget, upd, env_steps, upd * self.episodes]
+                    + [f"{v:.6g}" for v in values]
                 )
                 if self.tb is not None:
+                    tag = f"lam={run.lam:g}" if run.budget is None else f"budget={budget}"
                     for k, v in zip(names, values, strict=True):
-                        self.tb.add_scalar(f"lam={lam:g}/seed={seed}/{k}", v, env_steps)
+                        if np.isfinite(v):  # a target not yet set (inf) or none (NaN)
+                            self.tb.add_scalar(f"{tag}/seed={run.seed}/{k}", v, env_steps)
         self.file.flush()
 
     def close(self) -> None:
@@ -178,17 +226,17 @@ def run_sweep(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     runs = spec.runs()
-    keys = jnp.stack([jax.random.key(config.seed + s) for s, _ in runs])
-    lams = jnp.asarray([lam for _, lam in runs], jnp.float32)
+    keys, lams, budgets = run_arrays(config, runs)
     mesh = make_mesh(len(runs), episodes_per_update, devices)
     init, steps = _compiled(learner, mesh is not None)
     with use_mesh(mesh):
-        state = init(*place_runs((keys, lams), mesh))
+        state = init(*place_runs((keys, lams, budgets), mesh))
     meta = {
         "kind": kind,
         "config": to_dict(config),
         "seeds": spec.seeds,
         "lams": list(spec.lams),
+        "budgets": list(spec.budgets),
         "num_updates": num_updates,
         "chunk": chunk,
     }
@@ -201,7 +249,7 @@ def run_sweep(
         # extended from its checkpoint equals one started with the larger budget.
         if isinstance(old.get("config"), dict):
             old["config"] = {**old["config"], "num_updates": meta["config"].get("num_updates")}
-        for field in ("kind", "config", "seeds", "lams", "chunk"):
+        for field in ("kind", "config", "seeds", "lams", "budgets", "chunk"):
             if old.get(field) != meta[field]:
                 raise ValueError(
                     f"cannot resume from {ckpt}: its {field} differs from this run's "

@@ -45,7 +45,7 @@ def test_train_eval_render(tmp_path, fast_compile):
     rows = (out / "metrics.csv").read_text().splitlines()[1:]
     assert len(rows) == 2 * 2 * 2  # updates x seeds x lambdas
     results = json.loads((out / "results.json").read_text())
-    assert set(results["by_lambda"]) == {"0", "0.01"} and len(results["runs"]) == 4
+    assert set(results["by_group"]) == {"0", "0.01"} and len(results["runs"]) == 4
     main(["eval", "--run", str(out), "--episodes", "4"])
     ev = json.loads((out / "eval.json").read_text())
     assert ev["episodes_per_run"] == 4 and len(ev["runs"]) == 4

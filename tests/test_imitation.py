@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from sparsecomm.configs import ChannelConfig, ILConfig
+from sparsecomm.configs import AgentConfig, ChannelConfig, ILConfig
 from sparsecomm.envs.navigation import NavConfig
 from sparsecomm.envs.oracle import oracle_actions
 from sparsecomm.imitation import make_imitate
@@ -51,7 +51,8 @@ def test_beta_schedule_and_lambda_in_loss(fast_compile):
 
 
 def test_learners_get_gradient_only_through_messages_from_others(fast_compile):
-    im = make_imitate(TINY)
+    separate = dataclasses.replace(TINY, agent=AgentConfig(share_params=False))
+    im = make_imitate(separate)
     params = im.team.init(jax.random.key(0))["actor"]
 
     def loss_of_agent0(p):
@@ -63,7 +64,7 @@ def test_learners_get_gradient_only_through_messages_from_others(fast_compile):
 
     g = jax.grad(loss_of_agent0)(params)
     assert sum(float(jnp.abs(x[1]).sum()) for x in jax.tree.leaves(g)) > 0
-    off = make_imitate(dataclasses.replace(TINY, channel=ChannelConfig(mode="off")))
+    off = make_imitate(dataclasses.replace(separate, channel=ChannelConfig(mode="off")))
     g = jax.grad(
         lambda p: jnp.sum(
             rollout(
@@ -82,8 +83,8 @@ def test_learners_get_gradient_only_through_messages_from_others(fast_compile):
 
 
 def test_trained_team_can_be_the_expert(tmp_path, fast_compile):
-    from sparsecomm.cli import Train, train
     from sparsecomm.configs import RLConfig
+    from sparsecomm.experiment import Train, train
 
     rl = RLConfig(env=TINY.env, num_envs=4, num_updates=2)
     train(
@@ -103,10 +104,10 @@ def test_trained_team_can_be_the_expert(tmp_path, fast_compile):
     assert np.all(np.isfinite(m["imitation_loss"]))
     # The expert's labels are the trained team's greedy actions (checked on the first step,
     # where the team's memory and messages are zeros).
-    from sparsecomm.cli import load_run
+    from sparsecomm.experiment import load_run
 
-    _, tr, _, rl_state = load_run(tmp_path / "rl")
-    params = jax.tree.map(lambda x: x[0], rl_state.params["actor"])
+    _, tr, _, rl_actor = load_run(tmp_path / "rl")
+    params = jax.tree.map(lambda x: x[0], rl_actor)
     obs, env_state = jax.vmap(im.env.reset)(jax.random.split(jax.random.key(3), 16))
     _, labels = im.expert.step(im.expert.init(16), None, env_state, obs)
     msgs = jnp.zeros((16, 3, 2 * cfg.channel.num_elements))

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from sparsecomm.configs import ChannelConfig, RLConfig
+from sparsecomm.configs import AgentConfig, ChannelConfig, RLConfig
 from sparsecomm.envs.navigation import NavConfig
 from sparsecomm.reproduce import _fast_compile
 from sparsecomm.rl import make_train
@@ -66,8 +66,10 @@ def test_log_prob_matches_scipy_binomial():
 
 def test_no_gradient_through_the_channel():
     """A receiver's loss has zero gradient w.r.t. a sender's parameters (its only path to them
-    is the channel); the sender's own message log-probability does carry gradient."""
-    cfg = RLConfig(env=NavConfig(max_steps=6), num_envs=4, channel=RCL)
+    is the channel); the sender's own message log-probability does carry gradient. Separate
+    actor parameters, so that each agent's share of the gradient can be read off."""
+    separate = AgentConfig(share_params=False)
+    cfg = RLConfig(env=NavConfig(max_steps=6), num_envs=4, channel=RCL, agent=separate)
     tr = make_train(cfg)
     params = tr.team.init(jax.random.key(0))["actor"]
 

@@ -6,7 +6,14 @@ import pytest
 
 from sparsecomm import report_md
 from sparsecomm.cli import main
-from sparsecomm.reproduce import IL_LAMS, PARTS, RL_LAMS, Reproduce, _source_digest
+from sparsecomm.reproduce import (
+    BUDGETS,
+    IL_LAMS,
+    PARTS,
+    RL_LAMS,
+    Reproduce,
+    _source_digest,
+)
 
 TINY = [
     "--quick",
@@ -48,6 +55,8 @@ def test_quick_writes_every_artefact(quick_run):
         "report.md",
         "summary.json",
         "timings.json",
+        "frontier.png",
+        "budget_summary.json",
     ):
         assert (out / name).stat().st_size > 0, name
     for part in ("rl", "imitation", "no_comm", "continuous", "fixed", "rcl"):
@@ -170,10 +179,39 @@ def test_claim_3_fails_when_bits_rise_with_lambda():
     assert verdicts(s)[2] is False
 
 
-def test_claim_4_fails_when_reward_is_hurt_or_bits_not_halved():
+def test_claim_4_is_judged_on_success_and_length_not_group_reward():
     s = paper_like()
-    s["rl"][0.001] = method(0.7, 8000, 50)  # 2000 below, > 10% of the 9000 gain
+    s["rl"][0.001] = method(0.7, 12000, 50)  # reward up 20%, success down 22%: hovering
     assert verdicts(s)[3] is False
+    s = paper_like()
+    s["rl"][0.001] = method(0.88, 12000, 50, length=150.0)  # success kept, 50% longer episodes
+    assert verdicts(s)[3] is False
+    s = paper_like()
+    s["rl"][0.001] = method(0.88, 5000, 50)  # reward halved, success and length kept
+    s["rl"][0.005] = method(0.86, 4000, 30)
+    assert verdicts(s)[3] is True
+
+
+def test_claim_4_tolerances_on_means_and_cis():
+    # lambda 0: success 0.9, length 100; means may lose 10%, CIs must reach within 5%
+    s = paper_like()
+    s["rl"][0.001]["success_rate"] = st(0.80, 0.1)  # mean 89% of lambda 0's: too low
+    assert verdicts(s)[3] is False
+    s["rl"][0.001]["success_rate"] = st(0.83, 0.005)  # mean 92%, but CI high 0.835 < 0.855
+    assert verdicts(s)[3] is False
+    s["rl"][0.001]["success_rate"] = st(0.83, 0.05)  # mean 92%, CI reaches 0.88
+    assert verdicts(s)[3] is True
+    s["rl"][0.001]["episode_length"] = st(111.0, 10.0)  # mean 111% of lambda 0's
+    assert verdicts(s)[3] is False
+    s["rl"][0.001]["episode_length"] = st(108.0, 1.0)  # mean 108%, CI low 107 > 105
+    assert verdicts(s)[3] is False
+    s["rl"][0.001]["episode_length"] = st(108.0, 4.0)  # CI low 104
+    assert verdicts(s)[3] is True
+    s["rl"][0.01] = method(0.1, 500, 1, length=250.0)  # the largest lambda may be hurt
+    assert verdicts(s)[3] is True
+
+
+def test_claim_4_needs_half_the_bits():
     s = paper_like()
     s["rl"][0.001] = method(0.88, 9900, 100)
     s["rl"][0.005] = method(0.86, 9800, 70)  # never <= 120 / 2
@@ -198,3 +236,17 @@ def test_extra_rcl_check_and_missing_parts():
     s["training_success"]["rcl"] = st(0.5, 0.05)
     assert verdicts(s)[5] is False
     assert verdicts({"rl": paper_like()["rl"]}) == [None, None, True, True, None, None]
+
+
+def test_budget_parts_write_the_frontier(quick_run):
+    rows = json.loads((quick_run / "budget_summary.json").read_text())
+    keys = {"learner", "budget", "lam", "seeds", "success", "payload_bits", "wire_bits"}
+    assert all(set(r) == keys | {"episode_length"} for r in rows)
+    for learner in ("rl", "imitation"):
+        budgets = {r["budget"] for r in rows if r["learner"] == learner}
+        assert budgets == {None, *BUDGETS}, (learner, budgets)
+        assert all(r["seeds"] == 2 and len(r["success"]) == 3 for r in rows)
+    text = (quick_run / "report.md").read_text()
+    assert "## Bit budgets: the frontier" in text
+    assert "claim 4 at budget-matched points (rl)" in text
+    assert "claim 5 at budget-matched points (imitation)" in text

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from sparsecomm import checkpoint
-from sparsecomm.configs import ChannelConfig, RLConfig
+from sparsecomm.configs import AgentConfig, ChannelConfig, RLConfig
 from sparsecomm.envs.navigation import NavConfig
 from sparsecomm.rl import discounted_targets, make_train, penalty_schedule
 from sparsecomm.rollout import link_tables, rollout
@@ -18,7 +18,10 @@ TINY = RLConfig(env=NavConfig(max_steps=8), num_envs=4, num_updates=3)
 
 
 def _receiver_grads(mode: str, receiver: int):
-    cfg = dataclasses.replace(TINY, channel=ChannelConfig(mode=mode))
+    """Gradients of one receiver's log-probabilities with respect to every agent's own actor
+    parameters (separate parameters, so each agent's share can be read off)."""
+    separate = AgentConfig(share_params=False)
+    cfg = dataclasses.replace(TINY, channel=ChannelConfig(mode=mode), agent=separate)
     tr = make_train(cfg)
     params = tr.team.init(jax.random.key(0))["actor"]
 

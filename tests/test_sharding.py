@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from flax import serialization
 
-from sparsecomm.cli import evaluate_runs, load_run
+from sparsecomm.experiment import evaluate_runs, load_run
 
 # Tiny runs whose time is compilation: compile with most XLA optimisations off (as the other
 # end-to-end tests do, tests/conftest.py); the SPMD partitioner still runs.
@@ -127,8 +127,8 @@ def test_sweep_sharded_over_devices_and_processes_matches_one_device(tmp_path, f
     # single-device evaluation of the checkpoint they wrote.
     results = json.loads((rl / "results.json").read_text())
     assert results["processes"] == 2 and results["devices"] == 4
-    _, trainer, runs, state = load_run(rl)
-    again = evaluate_runs(trainer, runs, state, 4, devices=[jax.devices()[0]])
+    _, trainer, runs, actor = load_run(rl)
+    again = evaluate_runs(trainer, runs, actor, 4, devices=[jax.devices()[0]])
     assert len(results["runs"]) == len(again["runs"]) == 2
     for a, b in zip(results["runs"], again["runs"], strict=True):
         assert a.keys() == b.keys()

@@ -22,6 +22,7 @@ from sparsecomm.channel.codes import (
     payload_bits,
     wire_bits,
 )
+from sparsecomm.channel.gate import GATES, gate, hard_gate
 from sparsecomm.channel.penalty import bit_penalty
 from sparsecomm.channel.quantizer import (
     dequantize,
@@ -33,6 +34,7 @@ from sparsecomm.channel.quantizer import (
 
 __all__ = [
     "CODE_NAMES",
+    "GATES",
     "Code",
     "as_code",
     "bit_penalty",
@@ -41,6 +43,8 @@ __all__ = [
     "dither",
     "dither_key",
     "encode",
+    "gate",
+    "hard_gate",
     "packet_bits",
     "paper_length",
     "payload_bits",

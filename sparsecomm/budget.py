@@ -1,0 +1,182 @@
+"""A bit budget that training meets: the penalty weight as a dual variable (issue 14).
+
+A fixed bit-penalty weight lambda is right at one moment of training only: the ratio of the
+penalty's gradient to the task gradient's noise falls by orders of magnitude as a team learns
+(docs/budget.md), so a lambda that prunes a trained team silences an untrained one, and one that
+an untrained team survives barely moves a trained one. Instead of a price, the user gives a
+*budget*: payload bits per step for the whole team (the paper's count, summed over every link),
+and training sets the price itself, inside the compiled update, from the real bits of each
+update's episodes:
+
+1. **Wait for the team.** Until the team first succeeds (the moving average of its success rate
+   reaches ``engage_success``) the weight is the run's lambda (0 by default): nothing is priced
+   while the team has yet to learn that talking pays.
+2. **Lower the target gradually.** Once engaged, the target starts at the bits the team sends
+   then and halves every ``halving_updates`` updates until it reaches the budget. It pauses while
+   the team's success has fallen below ``hold_success`` of its best (so the team re-learns before
+   being asked for less).
+3. **Dual ascent in log space.** ``log w += dual_lr * clip((bits - target) / target, -1, 1)``:
+   the weight grows geometrically while the team sends more than the target and shrinks while it
+   sends less. In log space one step size serves weights that differ by 1000x, and a silent team
+   (bits 0 < target) quickly stops paying for bits, so the penalty cannot hold a link silent
+   that reward needs; the weight stays within ``[weight_min, weight_max]``.
+
+The same controller serves RL and imitation (``sparsecomm.rl``, ``sparsecomm.imitation``): each
+learner prices a bit with ``weight(state)`` exactly as it would with lambda, and calls
+:func:`update` once per gradient update with the batch's measured payload bits per step and
+success rate. Runs without a budget carry ``budget = NaN`` and keep their fixed lambda, so fixed
+and budgeted runs share one vmapped program.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+__all__ = ["BudgetConfig", "BudgetState", "check_budget", "init", "log", "update", "weight"]
+
+
+@dataclasses.dataclass(frozen=True)
+class BudgetConfig:
+    """The bit budget and its controller. ``bits = None`` keeps the paper's fixed lambda."""
+
+    bits: float | None = None
+    """Payload bits per step for the whole team (the paper's count, summed over all links) that
+    training must meet; ``None``: no budget, the penalty weight is the fixed lambda (paper).
+    ``sparsecomm train --budgets`` sweeps it. ours: ``None`` (the paper's behaviour)."""
+    weight_init: float = 0.01
+    """Penalty weight (lambda units: the price of one bit) when the controller engages, unless the
+    run's lambda is larger. ours: 0.01, the largest paper lambda (it costs a trained team ~16% of
+    its bits and no success, docs/reproduce.md)."""
+    weight_min: float = 1e-5
+    """Lower bound of the weight. ours: small enough to be no pressure at all (lambda 0.001 moves
+    a trained team's bits by ~1%)."""
+    weight_max: float = 1e3
+    """Upper bound of the weight. ours: far above any weight a team needs (the delayed-penalty runs
+    reached 20 bits per step at lambda 3)."""
+    dual_lr: float = 0.1
+    """Step of ``log(weight)`` per update at a relative excess of 100% (the excess
+    ``(bits - target) / target`` is clipped to [-1, 1]). ours: the weight can change 10x in 23
+    updates, fast against the hundreds of updates a team takes to learn."""
+    engage_success: float = 0.5
+    """The target starts to fall when the moving average of the batch success rate first reaches
+    this. ours."""
+    halving_updates: float = 50.0
+    """Once engaged, the target halves every this many updates until it reaches ``bits``. ours: an
+    imitation probe (issue 14) that lowered the target 10x over 500 updates kept success; one that
+    jumped to the budget at once silenced the channel for good."""
+    hold_success: float = 0.8
+    """The target stops falling while the moving average of success is below this fraction of its
+    best so far. ours."""
+    success_ema: float = 0.1
+    """Weight of the newest update in the moving average of the success rate. ours."""
+
+    def __post_init__(self):
+        if self.bits is not None:
+            check_budget(self.bits, "BudgetConfig.bits")
+        checks = {
+            "weight_init": self.weight_init > 0 and math.isfinite(self.weight_init),
+            "weight_min": self.weight_min > 0 and math.isfinite(self.weight_min),
+            "weight_max": self.weight_max >= self.weight_min and math.isfinite(self.weight_max),
+            "dual_lr": self.dual_lr > 0 and math.isfinite(self.dual_lr),
+            "engage_success": 0 <= self.engage_success <= 1,
+            "halving_updates": self.halving_updates > 0 and math.isfinite(self.halving_updates),
+            "hold_success": 0 <= self.hold_success <= 1,
+            "success_ema": 0 < self.success_ema <= 1,
+        }
+        allowed = {
+            "weight_max": f"finite and >= weight_min ({self.weight_min})",
+            "engage_success": "in [0, 1]",
+            "hold_success": "in [0, 1]",
+            "success_ema": "in (0, 1]",
+        }
+        for name, ok in checks.items():
+            if not ok:
+                value = getattr(self, name)
+                raise ValueError(
+                    f"BudgetConfig.{name} must be {allowed.get(name, 'finite and > 0')}, "
+                    f"got {value!r}"
+                )
+
+
+def check_budget(bits, name: str = "budget", max_bits: float | None = None) -> float:
+    """Validate one budget (payload bits per step): finite, >= 0 and at most ``max_bits`` (the
+    most the team's code can send per step), with the field's name in the message."""
+    try:
+        b = float(bits)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a number of bits per step >= 0, got {bits!r}") from None
+    if not math.isfinite(b) or b < 0:
+        raise ValueError(f"{name} must be finite and >= 0 (payload bits per step), got {bits!r}")
+    if max_bits is not None and b > max_bits:
+        raise ValueError(
+            f"{name} must be <= {max_bits:g}, the most the team's code can send per step, got {b:g}"
+        )
+    return b
+
+
+class BudgetState(struct.PyTreeNode):
+    """The controller's state, one per run (scalars, so runs vmap)."""
+
+    budget: jax.Array  # () float32, payload bits per step to reach; NaN: no budget (fixed lambda)
+    lam: jax.Array  # () float32, the run's lambda (the weight until engaged, or for good)
+    log_weight: jax.Array  # () float32, log of the penalty weight once engaged
+    target: jax.Array  # () float32, the current target (inf until engaged)
+    engaged: jax.Array  # () bool, the team has succeeded once: the target has started to fall
+    success: jax.Array  # () float32, moving average of the batch success rate
+    best: jax.Array  # () float32, the best moving average so far
+
+
+def init(cfg: BudgetConfig, budget, lam) -> BudgetState:
+    """The state of a run with ``budget`` (NaN: none) and lambda ``lam``."""
+    f32 = jnp.float32
+    return BudgetState(
+        budget=jnp.asarray(budget, f32),
+        lam=jnp.asarray(lam, f32),
+        log_weight=jnp.log(jnp.maximum(jnp.asarray(lam, f32), cfg.weight_init)),
+        target=jnp.asarray(jnp.inf, f32),
+        engaged=jnp.zeros((), bool),
+        success=jnp.zeros((), f32),
+        best=jnp.zeros((), f32),
+    )
+
+
+def has_budget(state: BudgetState) -> jax.Array:
+    return ~jnp.isnan(state.budget)
+
+
+def weight(state: BudgetState) -> jax.Array:
+    """The penalty weight (the price of one bit, in lambda's units) for this update."""
+    return jnp.where(has_budget(state) & state.engaged, jnp.exp(state.log_weight), state.lam)
+
+
+def log(state: BudgetState, price) -> dict[str, jax.Array]:
+    """What a learner logs per update: the price of a bit it used and the bit target (NaN when
+    the run has no budget; inf until the controller engages)."""
+    return {"price": price, "bit_target": jnp.where(has_budget(state), state.target, jnp.nan)}
+
+
+def update(cfg: BudgetConfig, state: BudgetState, bits, success) -> BudgetState:
+    """One controller step after a gradient update whose episodes sent ``bits`` payload bits per
+    step at batch success rate ``success`` (both measured, not surrogates)."""
+    bits = jnp.asarray(bits, jnp.float32)
+    ema = (1 - cfg.success_ema) * state.success + cfg.success_ema * success
+    best = jnp.maximum(state.best, ema)
+    engaging = has_budget(state) & ~state.engaged & (ema >= cfg.engage_success)
+    # The target starts from what the team sends when it first succeeds, then falls gradually.
+    target = jnp.where(engaging, jnp.maximum(bits, state.budget), state.target)
+    falling = state.engaged & (ema >= cfg.hold_success * best)
+    lowered = jnp.maximum(target * 0.5 ** (1.0 / cfg.halving_updates), state.budget)
+    target = jnp.where(falling, lowered, target)
+    engaged = state.engaged | engaging
+    excess = jnp.clip((bits - target) / jnp.maximum(target, 1.0), -1.0, 1.0)
+    lo, hi = math.log(cfg.weight_min), math.log(cfg.weight_max)
+    stepped = jnp.clip(state.log_weight + cfg.dual_lr * excess, lo, hi)
+    log_weight = jnp.where(state.engaged, stepped, state.log_weight)
+    return state.replace(
+        log_weight=log_weight, target=target, engaged=engaged, success=ema, best=best
+    )

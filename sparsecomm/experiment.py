@@ -1,0 +1,328 @@
+"""Library runs behind the command line: train, imitate, evaluate, render, load a run.
+
+Each command's arguments are a typed dataclass (``Train``, ``Imitate``, ``Eval``, ``Render``) whose
+every field is documented; :mod:`sparsecomm.cli` only parses them. Tests, benchmarks and
+``sparsecomm reproduce`` call these functions directly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import serialization
+
+from sparsecomm import checkpoint
+from sparsecomm.configs import ILConfig, RLConfig, check_budget_fits, from_dict, to_dict
+from sparsecomm.imitation import make_imitate
+from sparsecomm.report import bootstrap_ci, plot_curves
+from sparsecomm.rl import make_train
+from sparsecomm.sharding import (
+    RUNS,
+    Distributed,
+    is_primary,
+    make_mesh,
+    place_runs,
+    to_host,
+    use_mesh,
+)
+from sparsecomm.sweep import Run, SweepSpec, run_arrays, run_sweep, spec_from_meta
+
+EVAL_SEED_OFFSET = 1_000_003
+"""Evaluation episodes use seed ``config.seed + EVAL_SEED_OFFSET + run``: disjoint from training."""
+
+
+@dataclasses.dataclass
+class Train:
+    """Train teams by actor-critic RL through the channel; a sweep of lambdas x budgets x seeds.
+    ``sparsecomm train --preset small`` starts from a named preset (``configs.PRESETS``)."""
+
+    config: RLConfig = RLConfig()
+    """The learner."""
+    seeds: int = 1
+    """Seeds per lambda."""
+    lams: tuple[float, ...] = (0.0,)
+    """Bit-penalty weights to sweep (one vmapped program). With ``--budgets``: the weight each
+    run starts from (the controller sets it from then on)."""
+    budgets: tuple[float | None, ...] | None = None
+    """Bit budgets to sweep (payload bits per step for the team, the paper's count), one vmapped
+    program with the lambdas and seeds (``None``: a fixed-lambda run beside them); default:
+    ``config.budget.bits``."""
+    out: Path = Path("runs/train")
+    """Output folder: metrics.csv, tensorboard/, checkpoint/, results.json, curves.png, team.gif."""
+    chunk: int = 10
+    """Updates per compiled call: the logging and progress granularity."""
+    checkpoint_every: int = 5
+    """Save a checkpoint every this many chunks (and at the end)."""
+    resume: bool = True
+    """Continue from ``out/checkpoint`` when it exists."""
+    tensorboard: bool = True
+    """Write TensorBoard scalars to ``out/tensorboard``."""
+    eval_episodes: int = 500
+    """Episodes per run for the final evaluation written to results.json."""
+    gif: bool = True
+    """Render one episode of the first run's team to ``out/team.gif``."""
+    progress: bool = True
+    """Show a progress bar."""
+    distributed: Distributed = dataclasses.field(default_factory=Distributed)
+    """Multi-host: every process runs this command; the runs and episodes are split over all
+    processes' devices, process 0 writes the files."""
+
+
+@dataclasses.dataclass
+class Imitate(Train):
+    """Imitate an expert's actions through the channel; a sweep of lambdas x seeds."""
+
+    config: ILConfig = ILConfig()
+    """The learner."""
+    out: Path = Path("runs/imitate")
+    """Output folder: metrics.csv, tensorboard/, checkpoint/, results.json, curves.png, team.gif."""
+
+
+@dataclasses.dataclass
+class Eval:
+    """Evaluate every run of a trained sweep over fresh episodes; print and write JSON."""
+
+    run: Path | None = None
+    """Folder of a ``sparsecomm train``/``imitate`` run or of an exported team; default: the
+    sparse team shipped with the package (:data:`PRETRAINED`)."""
+    episodes: int = 1000
+    """Episodes per run."""
+    greedy: bool = False
+    """Take the most probable action instead of sampling."""
+    out: Path | None = None
+    """JSON file to write (default: ``<run>/eval.json``; ``runs/pretrained/eval.json`` for the
+    shipped team)."""
+
+
+@dataclasses.dataclass
+class Render:
+    """Write a GIF of one episode of a trained team (links drawn with the bits they carry)."""
+
+    run: Path | None = None
+    """Folder of a ``sparsecomm train``/``imitate`` run or of an exported team; default: the
+    sparse team shipped with the package (:data:`PRETRAINED`)."""
+    index: int = 0
+    """Which run of the sweep (lambda-major, then seed)."""
+    seed: int = 0
+    """Episode seed."""
+    out: Path | None = None
+    """GIF path (default: ``<run>/team.gif``; ``runs/pretrained/team.gif`` for the shipped team)."""
+    fps: int = 12
+    """Frames per second."""
+
+
+@dataclasses.dataclass
+class Export:
+    """Export one trained team of a run as weights only (msgpack) and its config (JSON)."""
+
+    run: Path
+    """Folder of a ``sparsecomm train``/``imitate`` run."""
+    out: Path
+    """Folder to write ``team.json`` and ``actor.msgpack`` to."""
+    index: int = 0
+    """Which run of the sweep (lambda-major, then budget, then seed)."""
+    note: str = ""
+    """Free text stored in ``team.json`` (e.g. the command that trained it)."""
+
+
+PRETRAINED = Path(__file__).parent / "pretrained" / "sparse_team"
+"""The trained sparse team shipped with the package (docs/budget.md says how it was trained)."""
+
+
+KINDS = {"train": (RLConfig, make_train), "imitate": (ILConfig, make_imitate)}
+
+
+def _learner(kind: str, config_dict: dict, where: Path):
+    if kind not in KINDS:
+        raise ValueError(f"{where} holds a {kind!r} run, not one of {list(KINDS)}")
+    config_cls, make = KINDS[kind]
+    config = from_dict(config_cls, config_dict)
+    return config, make(config)
+
+
+def load_run(folder: Path):
+    """A run folder (or an exported team's) as ``(config, learner, runs, actor_params)``, the
+    actors' parameters with a leading run axis. Reads msgpack and JSON only (no pickle)."""
+    folder = Path(folder)
+    if (folder / "team.json").exists():  # an exported team: one run, weights only
+        meta = json.loads((folder / "team.json").read_text())
+        config, trainer = _learner(meta["kind"], meta["config"], folder)
+        template = trainer.team.init(jax.random.key(0))["actor"]
+        actor = serialization.from_bytes(template, (folder / "actor.msgpack").read_bytes())
+        actor = jax.tree.map(lambda x: jnp.asarray(x)[None], actor)
+        return config, trainer, [Run(**meta["run"])], actor
+    meta = checkpoint.load_meta(folder / "checkpoint")
+    config, trainer = _learner(meta.get("kind"), meta["config"], folder)
+    runs = spec_from_meta(meta).runs()
+    template = jax.vmap(trainer.init)(*run_arrays(config, runs))
+    state = checkpoint.load(folder / "checkpoint", template)
+    return config, trainer, runs, state.params["actor"]
+
+
+def export_team(args: Export) -> Path:
+    """Write run ``args.index`` of a run folder as an exported team (see :class:`Export`)."""
+    config, trainer, runs, actor = load_run(args.run)
+    if not 0 <= args.index < len(runs):
+        raise ValueError(f"index must be in [0, {len(runs) - 1}], got {args.index}")
+    kind = "imitate" if isinstance(config, ILConfig) else "train"
+    one = jax.tree.map(lambda x: np.asarray(x[args.index]), to_host(actor))
+    args.out.mkdir(parents=True, exist_ok=True)
+    meta = {
+        "kind": kind,
+        "config": to_dict(config),
+        "run": runs[args.index]._asdict(),
+        "note": args.note,
+    }
+    (args.out / "team.json").write_text(json.dumps(meta, indent=2))
+    (args.out / "actor.msgpack").write_bytes(serialization.to_bytes(one))
+    print(f"-> {args.out}")
+    return args.out
+
+
+def evaluate_runs(
+    trainer, runs, actor_params, episodes: int, greedy: bool = False, devices=None
+) -> dict:
+    """Evaluate every run of a sweep over ``episodes`` fresh episodes, with bootstrap CIs.
+
+    The runs and episodes are split over ``devices`` (default: the local ones) as in training;
+    with several processes every process must call this (pass ``jax.devices()``).
+    """
+    config = trainer.config
+    keys = jnp.stack([jax.random.key(config.seed + EVAL_SEED_OFFSET + r) for r in range(len(runs))])
+    mesh = make_mesh(len(runs), episodes, devices)
+    params = place_runs(to_host(actor_params), mesh)
+    spmd = RUNS if mesh is not None else None
+    ev = jax.jit(
+        jax.vmap(lambda p, k: trainer.evaluate(p, k, episodes, greedy), spmd_axis_name=spmd)
+    )
+    with use_mesh(mesh):
+        metrics = to_host(ev(params, place_runs(keys, mesh)))
+    per_run = [
+        {**run._asdict(), **{k: float(v[i]) for k, v in metrics.items()}}
+        for i, run in enumerate(runs)
+    ]
+    summary = {}
+    for group in dict.fromkeys(run.group for run in runs):  # in sweep order
+        idx = [i for i, run in enumerate(runs) if run.group == group]
+        summary[group] = {
+            k: dict(zip(("mean", "ci_low", "ci_high"), bootstrap_ci(v[idx]), strict=True))
+            for k, v in metrics.items()
+        }
+    return {"episodes_per_run": episodes, "greedy": greedy, "runs": per_run, "by_group": summary}
+
+
+def render_run(trainer, actor_params, seed: int, out: Path, fps: int = 12) -> Path:
+    from sparsecomm.envs.render import render_frames, write_gif
+    from sparsecomm.rollout import rollout
+
+    traj = jax.jit(
+        lambda p, k: rollout(
+            trainer.team, trainer.env, trainer.config.channel, p, k, 1, keep_states=True
+        )
+    )(actor_params, jax.random.key(seed))
+    length = int(np.asarray(traj.valid).sum())
+    states = jax.tree.map(lambda x: np.asarray(x)[:length, 0], traj.env_states)
+    link_bits = np.asarray(traj.link_bits)[:length, 0]
+    frames = render_frames(states, trainer.env.config, link_bits=link_bits)
+    write_gif(out, frames, fps=fps)
+    return out
+
+
+def train(args: Train) -> dict:
+    """Run ``sparsecomm train`` or ``sparsecomm imitate`` (by the type of ``args``)."""
+    args.distributed.initialize()
+    cfg = args.config
+    kind = "imitate" if isinstance(args, Imitate) else "train"
+    trainer = make_imitate(cfg) if kind == "imitate" else make_train(cfg)
+    budgets = args.budgets if args.budgets is not None else (cfg.budget.bits,)
+    check_budget_fits(cfg, budgets, "budgets")
+    spec = SweepSpec(args.seeds, args.lams, tuple(budgets))
+    t0 = time.time()
+    state, runs = run_sweep(
+        trainer,
+        cfg,
+        spec,
+        args.out,
+        num_updates=cfg.num_updates,
+        episodes_per_update=cfg.num_envs,
+        steps_per_episode=cfg.env.max_steps,
+        chunk=args.chunk,
+        checkpoint_every=args.checkpoint_every,
+        resume=args.resume,
+        tensorboard=args.tensorboard,
+        progress=args.progress,
+        kind=kind,
+        devices=jax.devices(),
+    )
+    wall = time.time() - t0
+    actor = state.params["actor"]
+    results = evaluate_runs(trainer, runs, actor, args.eval_episodes, devices=jax.devices())
+    results.update(
+        env_steps=cfg.num_updates * cfg.num_envs * cfg.env.max_steps,
+        wall_clock_s=wall,
+        device=str(jax.devices()[0]),
+        devices=jax.device_count(),
+        processes=jax.process_count(),
+    )
+    if args.gif:  # gathered on every process (a collective under jax.distributed)
+        actor0 = jax.tree.map(lambda x: x[0], to_host(actor))
+    if not is_primary():
+        return results
+    (args.out / "results.json").write_text(json.dumps(results, indent=2))
+    print(f"results -> {args.out / 'results.json'}")
+    for group, m in results["by_group"].items():
+        name = group if group.startswith("budget") else f"lambda={group}"
+        print(
+            f"  {name}: success {m['success_rate']['mean']:.3f} "
+            f"[{m['success_rate']['ci_low']:.3f}, {m['success_rate']['ci_high']:.3f}], "
+            f"length {m['episode_length']['mean']:.1f}, "
+            f"group reward {m['group_reward']['mean']:.0f}, "
+            f"bits/step {m['bits_per_step']['mean']:.1f}"
+        )
+    if cfg.num_updates > 0:
+        metrics = ("group_reward", "episode_length", "success_rate", "bits_per_step")
+        if kind == "imitate":
+            metrics = ("imitation_loss", *metrics)
+        curves = plot_curves(args.out / "metrics.csv", args.out / "curves.png", metrics)
+        print(f"curves  -> {curves}")
+    if args.gif:
+        print(f"gif     -> {render_run(trainer, actor0, 0, args.out / 'team.gif')}")
+    return results
+
+
+def _run_and_outputs(run: Path | None) -> tuple[Path, Path]:
+    """The run folder to read (default: the shipped team) and the folder to write beside it."""
+    if run is None:
+        return PRETRAINED, Path("runs/pretrained")
+    return run, run
+
+
+def evaluate(args: Eval) -> dict:
+    run, outputs = _run_and_outputs(args.run)
+    _, trainer, runs, actor = load_run(run)
+    results = evaluate_runs(trainer, runs, actor, args.episodes, args.greedy)
+    out = args.out or outputs / "eval.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(results, indent=2))
+    print(json.dumps(results["by_group"], indent=2))
+    print(f"-> {out}")
+    return results
+
+
+def render(args: Render) -> Path:
+    run, outputs = _run_and_outputs(args.run)
+    _, trainer, runs, actor = load_run(run)
+    if not 0 <= args.index < len(runs):
+        raise ValueError(f"index must be in [0, {len(runs) - 1}], got {args.index}")
+    params = jax.tree.map(lambda x: x[args.index], actor)
+    out = args.out or outputs / "team.gif"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out = render_run(trainer, params, args.seed, out, args.fps)
+    print(f"-> {out}")
+    return out

@@ -1,0 +1,255 @@
+"""The bit-budget frontier: success against bits, per budget and per lambda (issue 14).
+
+Reads the ``results.json`` of trained sweeps (``sparsecomm train|imitate --budgets ...``, or the
+``rl_budget`` / ``il_budget`` parts of ``sparsecomm reproduce``) and writes
+
+- ``summary.json``: a list of rows ``{"learner": "rl"|"imitation", "budget": float|null,
+  "lam": float, "seeds": int, "success": [mean, lo, hi], "payload_bits": [...],
+  "wire_bits": [...], "episode_length": [...]}``, one per (learner, budget, lambda) group, over
+  its seeds (95% CIs of :func:`sparsecomm.report.bootstrap_ci`);
+- ``frontier.png``: success against payload bits and against wire bits per step, budgets joined
+  by a line, fixed-lambda points beside them;
+- the budget-matched verdicts of the paper's claims 4 and 5 (:func:`budget_claims`) and the
+  issue's targets (:func:`targets`), for the report.
+
+Command line (the numbers of docs/budget.md)::
+
+    python -m sparsecomm.frontier --rl RUN/results.json --il RUN/results.json --out FOLDER
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+from sparsecomm.report import bootstrap_ci
+from sparsecomm.report_md import BITS_FACTOR, IL_MIN_SUCCESS, IL_SUCCESS_TOL, keeps_performance
+
+COLUMNS = {
+    "success": "success_rate",
+    "payload_bits": "bits_per_step",
+    "wire_bits": "wire_bits_per_step",
+    "episode_length": "episode_length",
+}
+"""Row field -> the evaluation metric it summarises."""
+TARGET_BUDGET, STRETCH_BUDGET = 16.0, 8.0
+"""Issue 14's target: budget 16 at >= ``TARGET_SUCCESS`` of lambda 0's success with final bits
+within ``TARGET_BITS_TOL`` of the budget; stretch: budget 8 at the same success."""
+TARGET_SUCCESS, TARGET_BITS_TOL = 0.95, 0.10
+
+
+def rows(results: dict, learner: str) -> list[dict]:
+    """The frontier rows of one sweep's ``results.json`` (its ``runs`` list)."""
+    groups: dict[tuple, list[dict]] = {}
+    for run in results["runs"]:
+        groups.setdefault((run.get("budget"), float(run["lam"])), []).append(run)
+    out = []
+    for (budget, lam), runs in groups.items():
+        row = {"learner": learner, "budget": budget, "lam": lam, "seeds": len(runs)}
+        for name, metric in COLUMNS.items():
+            row[name] = list(bootstrap_ci([r[metric] for r in runs]))
+        out.append(row)
+    return out
+
+
+def reference(table: list[dict], learner: str) -> dict | None:
+    """The learner's lambda-0 row without a budget (what the budgets are compared with)."""
+    return next(
+        (r for r in table if r["learner"] == learner and r["budget"] is None and r["lam"] == 0),
+        None,
+    )
+
+
+def _stats(row: dict) -> dict:
+    """A row in the ``{metric: {mean, ci_low, ci_high}}`` form of :mod:`sparsecomm.report_md`."""
+    return {
+        COLUMNS[name]: dict(zip(("mean", "ci_low", "ci_high"), row[name], strict=True))
+        for name in ("success", "episode_length")
+    }
+
+
+def budget_claims(table: list[dict]) -> list[dict]:
+    """Claims 4 (RL) and 5 (imitation) judged at budget-matched points, labelled as such.
+
+    Claim 4 at budgets: some budget sends <= 1/``BITS_FACTOR`` of lambda 0's payload bits while
+    keeping its success rate and episode length (:func:`sparsecomm.report_md.keeps_performance`).
+    Claim 5 at budgets (its sparse half; the collapse half is a property of a fixed lambda): the
+    imitation reference reaches ``IL_MIN_SUCCESS`` and some budget sends <= 1/``BITS_FACTOR`` of
+    its bits losing at most ``IL_SUCCESS_TOL`` success.
+    """
+    out = []
+    for number, learner in ((4, "rl"), (5, "imitation")):
+        ref = reference(table, learner)
+        budgets = [r for r in table if r["learner"] == learner and r["budget"] is not None]
+        if ref is None or not budgets:
+            continue
+        good = []
+        for r in sorted(budgets, key=lambda r: -r["budget"]):
+            sparse = r["payload_bits"][0] <= ref["payload_bits"][0] / BITS_FACTOR
+            if number == 4:
+                kept = keeps_performance(_stats(r), _stats(ref))
+            else:
+                kept = r["success"][0] >= ref["success"][0] - IL_SUCCESS_TOL
+            if sparse and kept:
+                good.append(r["budget"])
+        learned = number == 4 or ref["success"][0] >= IL_MIN_SUCCESS
+        out.append(
+            {
+                "claim": number,
+                "label": f"claim {number} at budget-matched points ({learner})",
+                "held": bool(learned and good),
+                "budgets_held": good,
+                "evidence": "; ".join(_describe(r) for r in [ref, *budgets]),
+            }
+        )
+    return out
+
+
+def targets(table: list[dict]) -> list[dict]:
+    """Issue 14's targets per learner: budget 16 (and the stretch, 8) at >= 95% of lambda 0's
+    success, with final payload bits within 10% of the budget."""
+    out = []
+    for learner in ("rl", "imitation"):
+        ref = reference(table, learner)
+        for goal in (TARGET_BUDGET, STRETCH_BUDGET):
+            row = next((r for r in table if r["learner"] == learner and r["budget"] == goal), None)
+            if ref is None or row is None:
+                continue
+            success_ok = row["success"][0] >= TARGET_SUCCESS * ref["success"][0]
+            bits_ok = abs(row["payload_bits"][0] - goal) <= TARGET_BITS_TOL * goal
+            out.append(
+                {
+                    "learner": learner,
+                    "budget": goal,
+                    "met": bool(success_ok and bits_ok),
+                    "success_ratio": row["success"][0] / max(ref["success"][0], 1e-9),
+                    "bits": row["payload_bits"][0],
+                }
+            )
+    return out
+
+
+def _describe(r: dict) -> str:
+    name = f"λ={r['lam']:g}" if r["budget"] is None else f"budget {r['budget']:g}"
+    s, b, n = r["success"], r["payload_bits"], r["episode_length"]
+    return (
+        f"{name}: success {s[0]:.3f} [{s[1]:.3f}, {s[2]:.3f}], bits {b[0]:.3g} "
+        f"[{b[1]:.3g}, {b[2]:.3g}], length {n[0]:.1f}"
+    )
+
+
+def plot(table: list[dict], out_png: str | Path, title: str | None = None) -> Path:
+    """Success against payload and wire bits per step (symlog axis), 95% CIs as error bars."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    colours = {"rl": "tab:blue", "imitation": "tab:orange"}
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+    for ax, bits in zip(axes, ("payload_bits", "wire_bits"), strict=True):
+        for learner, colour in colours.items():
+            for kind, marker in (("budget", "o"), ("lam", "s")):
+                sel = [
+                    r
+                    for r in table
+                    if r["learner"] == learner and (r["budget"] is not None) == (kind == "budget")
+                ]
+                if not sel:
+                    continue
+                sel.sort(key=lambda r: r[bits][0])
+                x = np.array([r[bits] for r in sel])
+                y = np.array([r["success"] for r in sel])
+                label = f"{learner}, {'budgets' if kind == 'budget' else 'fixed λ'}"
+                ax.errorbar(
+                    x[:, 0],
+                    y[:, 0],
+                    xerr=np.abs(x[:, 1:].T - x[:, 0]),
+                    yerr=np.abs(y[:, 1:].T - y[:, 0]),
+                    fmt=marker + ("-" if kind == "budget" else ""),
+                    color=colour,
+                    mfc=colour if kind == "budget" else "white",
+                    capsize=3,
+                    label=label,
+                )
+                for r, xi, yi in zip(sel, x[:, 0], y[:, 0], strict=True):
+                    tag = f"{r['budget']:g}" if kind == "budget" else f"λ{r['lam']:g}"
+                    ax.annotate(
+                        tag,
+                        (xi, yi),
+                        textcoords="offset points",
+                        xytext=(4, -10),
+                        fontsize=7,
+                        color=colour,
+                    )
+        ax.set_xscale("symlog", linthresh=1.0)
+        ax.set_xlabel(f"{bits.replace('_', ' ')} per step (team)")
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("success rate (final evaluation)")
+    axes[0].legend(fontsize=8, loc="lower right")
+    fig.suptitle(title or "Bit-budget frontier: mean and 95% CI over seeds")
+    fig.tight_layout()
+    out_png = Path(out_png)
+    fig.savefig(out_png, dpi=110)
+    plt.close(fig)
+    return out_png
+
+
+def _finite(x):
+    """JSON has no NaN: non-finite numbers become null."""
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_finite(v) for v in x]
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def write_rows(table: list[dict], path: str | Path) -> Path:
+    """The rows as JSON (non-finite numbers as null)."""
+    path = Path(path)
+    path.write_text(json.dumps(_finite(table), indent=2))
+    return path
+
+
+def write(out: str | Path, sources: dict[str, list[dict]]) -> list[dict]:
+    """``summary.json`` and ``frontier.png`` in ``out`` from ``{learner: [results, ...]}``."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    table = [row for learner, docs in sources.items() for doc in docs for row in rows(doc, learner)]
+    write_rows(table, out / "summary.json")
+    plot(table, out / "frontier.png")
+    return table
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rl", nargs="*", default=[], help="results.json of RL sweeps")
+    parser.add_argument("--il", nargs="*", default=[], help="results.json of imitation sweeps")
+    parser.add_argument("--out", required=True, help="folder for summary.json and frontier.png")
+    args = parser.parse_args(argv)
+    sources = {
+        "rl": [json.loads(Path(p).read_text()) for p in args.rl],
+        "imitation": [json.loads(Path(p).read_text()) for p in args.il],
+    }
+    table = write(args.out, sources)
+    for r in table:
+        print(
+            f"{r['learner']:9s} {_describe(r)}, wire {r['wire_bits'][0]:.3g} ({r['seeds']} seeds)"
+        )
+    for c in budget_claims(table):
+        print(f"{c['label']}: {'held' if c['held'] else 'not held'} {c['budgets_held']}")
+    for t in targets(table):
+        print(
+            f"target {t['learner']} budget {t['budget']:g}: {'met' if t['met'] else 'not met'}"
+            f" (success {t['success_ratio']:.1%} of λ=0, bits {t['bits']:.3g})"
+        )
+
+
+if __name__ == "__main__":
+    main()

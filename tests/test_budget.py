@@ -1,0 +1,147 @@
+"""The bit budget: the controller on a problem with a known answer, and in tiny training runs."""
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from sparsecomm import budget, channel
+from sparsecomm.budget import BudgetConfig
+from sparsecomm.configs import AgentConfig, ChannelConfig, ILConfig, RLConfig
+from sparsecomm.envs.navigation import NavConfig
+from sparsecomm.imitation import make_imitate
+from sparsecomm.rl import make_train
+
+
+def _track(cfg, bits_of_weight, budget_bits, updates, success=1.0, lam=0.0):
+    state = budget.init(cfg, budget_bits, lam)
+    step = jax.jit(lambda s, b: budget.update(cfg, s, b, success))
+    history = []
+    for _ in range(updates):
+        w = float(budget.weight(state))
+        bits = bits_of_weight(w)
+        history.append((w, bits, float(state.target)))
+        state = step(state, bits)
+    return state, np.array(history)
+
+
+def test_controller_finds_the_price_that_meets_the_budget():
+    # A team whose bits fall with the price as 160 / (1 + w / 0.05): the budget of 16 bits is met
+    # at w* = 0.05 * (160 / 16 - 1) = 0.45, which the controller must find from the bits alone.
+    cfg = BudgetConfig(halving_updates=20.0, engage_success=0.5, success_ema=1.0)
+    state, hist = _track(cfg, lambda w: 160.0 / (1.0 + w / 0.05), 16.0, 600)
+    assert float(state.target) == pytest.approx(16.0)
+    w, bits, _ = hist[-50:].T
+    assert np.all(np.abs(bits - 16.0) / 16.0 < 0.02)
+    assert np.all(np.abs(w - 0.45) / 0.45 < 0.03)
+    # The target fell gradually: never more than one halving per halving_updates.
+    targets = hist[1:, 2][np.isfinite(hist[1:, 2])]
+    ratio = targets[1:] / targets[:-1]
+    assert np.all(ratio >= 0.5 ** (1 / 20) - 1e-6) and np.all(ratio <= 1.0)
+
+
+def test_controller_waits_for_success_and_keeps_fixed_lambda_without_budget():
+    cfg = BudgetConfig(success_ema=1.0)
+    # No success yet: the weight stays the run's lambda and the target is not set.
+    state, hist = _track(cfg, lambda w: 100.0, 8.0, 30, success=0.0, lam=0.002)
+    assert np.all(hist[:, 0] == pytest.approx(0.002)) and math.isinf(float(state.target))
+    # No budget (NaN): a fixed lambda, whatever the bits and the success.
+    state, hist = _track(cfg, lambda w: 100.0, float("nan"), 30, success=1.0, lam=0.003)
+    assert np.all(hist[:, 0] == pytest.approx(0.003))
+    assert math.isnan(float(budget.log(state, 0.003)["bit_target"]))
+
+
+def test_a_silent_team_stops_paying_for_bits():
+    # After engaging, a team that falls silent (0 bits < target) sees the price fall
+    # geometrically to the floor: the penalty cannot hold the channel shut.
+    cfg = BudgetConfig(success_ema=1.0, dual_lr=0.1, weight_min=1e-5)
+    state, hist = _track(cfg, lambda w: 0.0 if w > 0.05 else 200.0, 20.0, 300)
+    w = hist[:, 0]
+    silent = np.nonzero(w > 0.05)[0]
+    assert silent.size > 0  # the price did reach the level that silences this team
+    after = w[silent[0] :]
+    assert after.min() < 0.05 and np.all(after < 0.06)  # never held above the silencing price
+    assert hist[-100:, 1].mean() > 0  # the team talks again part of the time
+
+
+@pytest.mark.parametrize(
+    "bits, message",
+    [
+        (-1.0, "BudgetConfig.bits must be finite and >= 0"),
+        (float("nan"), "BudgetConfig.bits must be finite and >= 0"),
+        (241.0, "RLConfig.budget.bits must be <= 240"),
+    ],
+)
+def test_bad_budgets_are_refused_with_the_field_name(bits, message):
+    with pytest.raises(ValueError, match=message):
+        RLConfig(budget=BudgetConfig(bits=bits))
+
+
+def test_budget_needs_the_discrete_channel_and_sane_controller_settings():
+    with pytest.raises(ValueError, match="ILConfig.budget.bits needs channel.mode 'discrete'"):
+        ILConfig(channel=ChannelConfig(mode="continuous"), budget=BudgetConfig(bits=8.0))
+    with pytest.raises(ValueError, match="BudgetConfig.dual_lr must be finite and > 0"):
+        BudgetConfig(dual_lr=0.0)
+    with pytest.raises(ValueError, match="BudgetConfig.hold_success must be in"):
+        BudgetConfig(hold_success=1.5)
+
+
+FAST = BudgetConfig(engage_success=0.0, halving_updates=1.0, dual_lr=0.5, weight_init=0.1)
+TINY_RL = RLConfig(env=NavConfig(max_steps=16), num_envs=8, num_updates=40, budget=FAST)
+
+
+def test_tiny_rl_run_moves_its_bits_toward_the_budget(fast_compile):
+    tr = make_train(TINY_RL)
+    keys = jnp.stack([jax.random.key(0)] * 2)
+    train = jax.jit(jax.vmap(tr.train, (0, None, 0)))
+    _, m = train(keys, 0.0, jnp.array([jnp.nan, 8.0]))
+    bits = np.asarray(m["bits_per_step"])
+    free, budgeted = bits[0, -5:].mean(), bits[1, -5:].mean()
+    assert bits[1, :3].mean() > 100  # both start near the untrained team's ~170 bits
+    assert budgeted < 0.5 * free, (free, budgeted)
+    target = np.asarray(m["bit_target"])
+    assert np.isnan(target[0]).all() and target[1, -1] == pytest.approx(8.0)
+
+
+@pytest.mark.parametrize("gate, recovers", [("hard", True), ("sigmoid", False)])
+def test_silenced_channel_recovers_when_the_budget_is_raised(gate, recovers, fast_compile):
+    # Imitation of the oracle: the learners need each other's messages to predict its actions.
+    cfg = ILConfig(
+        env=NavConfig(max_steps=16),
+        agent=AgentConfig(message_gate=gate),
+        num_envs=16,
+        num_updates=0,
+        lr=1e-2,
+        beta_decay_updates=0,
+        budget=FAST,
+    )
+    im = make_imitate(cfg)
+    chunk = jax.jit(im.update_chunk, static_argnums=1)
+    state = jax.jit(im.init)(jax.random.key(0), 0.0, 0.0)  # budget 0: silence
+    state, m = chunk(state, 40)
+    silent = np.asarray(m["bits_per_step"])[-10:]
+    assert silent.max() < 0.5, silent
+    raised = state.replace(budget=state.budget.replace(budget=jnp.float32(100.0)))
+    state, m = chunk(raised, 50)
+    bits, price = np.asarray(m["bits_per_step"]), np.asarray(m["price"])
+    assert price.min() < 1e-3  # the price fell: bits were (nearly) free again
+    if recovers:  # the hard gate's silence is reversible: the team talks again
+        assert bits[-10:].mean() > 50, bits[::5]
+    else:  # the sigmoid's silence is the trap the hard gate removes (sigmoid saturated)
+        assert bits.max() < 0.5, bits[::5]
+
+
+def test_hard_gate_is_exactly_silent_and_passes_only_gradients_that_reopen():
+    a = jnp.array([-9.0, -2.0, 0.0, 2.0, 9.0])
+    z = channel.hard_gate(a)
+    np.testing.assert_allclose(z, [0.0, 0.0, 0.5, 1.0, 1.0])
+    _, vjp = jax.vjp(channel.hard_gate, a)
+    # Cotangent -1 (the loss falls as z grows): passes at the lower edge, not at the upper.
+    np.testing.assert_allclose(vjp(-jnp.ones(5))[0], [-0.25, -0.25, -0.25, 0.0, 0.0])
+    # Cotangent +1 (e.g. the bit penalty): stopped where z is already 0, passes at z = 1.
+    np.testing.assert_allclose(vjp(jnp.ones(5))[0], [0.0, 0.0, 0.25, 0.25, 0.25])
+    # A silent element sends the null message: 0 payload bits, whatever the dither.
+    m, _ = channel.quantize(jax.random.key(0), channel.hard_gate(jnp.full((1000,), -3.0)), 15)
+    assert int(channel.payload_bits(m, "paper").sum()) == 0

@@ -1,0 +1,59 @@
+"""The frontier's rows, budget-matched claims and targets, on made-up evaluation results."""
+
+import json
+
+import numpy as np
+import pytest
+
+from sparsecomm import frontier
+
+
+def _results(groups):
+    """A results.json with one run per (budget, lam, success, bits, length) per seed offset."""
+    runs = []
+    for budget, lam, success, bits, length in groups:
+        for s, d in enumerate((-0.01, 0.0, 0.01)):
+            runs.append(
+                {
+                    "seed": s,
+                    "lam": lam,
+                    "budget": budget,
+                    "success_rate": success + d,
+                    "bits_per_step": bits + 10 * d,
+                    "wire_bits_per_step": 2 * bits + 1,
+                    "episode_length": length,
+                }
+            )
+    return {"runs": runs}
+
+
+RL = _results([(None, 0.0, 0.95, 160.0, 70.0), (16.0, 0.0, 0.93, 16.5, 72.0)])
+IL = _results([(None, 0.0, 0.90, 150.0, 80.0), (8.0, 0.0, 0.50, 8.0, 150.0)])
+
+
+def test_rows_group_by_budget_and_lambda_with_cis():
+    rows = frontier.rows(RL, "rl")
+    assert [(r["budget"], r["lam"], r["seeds"]) for r in rows] == [(None, 0.0, 3), (16.0, 0.0, 3)]
+    success = rows[1]["success"]
+    assert success[0] == pytest.approx(0.93) and success[1] <= 0.93 <= success[2]
+    assert rows[1]["wire_bits"][0] == pytest.approx(34.0)
+
+
+def test_budget_matched_claims_and_targets():
+    table = frontier.rows(RL, "rl") + frontier.rows(IL, "imitation")
+    claims = {c["claim"]: c for c in frontier.budget_claims(table)}
+    assert claims[4]["held"] and claims[4]["budgets_held"] == [16.0]
+    assert not claims[5]["held"]  # budget 8 loses 0.4 success
+    targets = {(t["learner"], t["budget"]): t for t in frontier.targets(table)}
+    assert targets[("rl", 16.0)]["met"]  # 0.93 >= 0.95 * 0.95, 16.5 within 10% of 16
+    assert not targets[("imitation", 8.0)]["met"]
+    assert targets[("rl", 16.0)]["success_ratio"] == pytest.approx(0.93 / 0.95)
+
+
+def test_write_makes_json_without_nan_and_a_figure(tmp_path):
+    nan_run = _results([(4.0, 0.0, 0.0, 0.0, 256.0)])
+    table = frontier.write(tmp_path, {"rl": [RL, nan_run], "imitation": [IL]})
+    text = (tmp_path / "summary.json").read_text()
+    assert "NaN" not in text and json.loads(text)[0]["learner"] == "rl"
+    assert len(table) == 5 and (tmp_path / "frontier.png").stat().st_size > 10_000
+    assert np.isfinite(table[-1]["success"][0])
