@@ -6,6 +6,7 @@ through the episode and through the channel, Adam step. Compile time excluded; t
 ``--repeats`` timed calls is reported.
 
     python benchmarks/train_throughput.py --mode train --num-envs 256 --seeds 1
+    python benchmarks/train_throughput.py --mode train --budget 16     # with the budget controller
     python benchmarks/train_throughput.py --mode rollout --num-envs 256 --agents 5 --max-steps 128
     XLA_FLAGS=--xla_force_host_platform_device_count=2 \
         python benchmarks/train_throughput.py --mode train --sharded   # the sweep's device mesh
@@ -22,7 +23,8 @@ from typing import Literal
 import jax
 import tyro
 
-from sparsecomm.configs import RLConfig
+from sparsecomm.budget import BudgetConfig
+from sparsecomm.configs import AgentConfig, RLConfig
 from sparsecomm.envs.navigation import NavConfig
 from sparsecomm.rl import make_train
 from sparsecomm.rollout import rollout
@@ -47,6 +49,12 @@ class Args:
     """Updates per timed call (train mode)."""
     repeats: int = 3
     """Timed calls."""
+    budget: float | None = None
+    """Train mode: a bit budget (payload bits per step), so the update runs the budget controller
+    (``sparsecomm.budget``); None: the fixed lambda 0."""
+    share_params: bool = True
+    """One set of actor parameters for all agents (the default learner); ``--no-share-params``
+    for separate ones (the paper's, and the default before issue 14)."""
     sharded: bool = False
     """Train mode: split the seeds and episodes over all local devices as ``run_sweep`` does
     (``sparsecomm.sharding``); otherwise everything runs on the default device."""
@@ -54,14 +62,21 @@ class Args:
 
 def main(a: Args) -> None:
     env = NavConfig(num_agents=a.agents, max_steps=a.max_steps)
-    cfg = RLConfig(env=env, num_envs=a.num_envs, remat=a.remat)
+    cfg = RLConfig(
+        env=env,
+        num_envs=a.num_envs,
+        remat=a.remat,
+        agent=AgentConfig(share_params=a.share_params),
+        budget=BudgetConfig(bits=a.budget),
+    )
     tr = make_train(cfg)
     keys = jax.random.split(jax.random.key(0), a.seeds)
     mesh = make_mesh(a.seeds, a.num_envs) if a.sharded and a.mode == "train" else None
     spmd = RUNS if mesh is not None else None
     with use_mesh(mesh):
-        state = jax.jit(jax.vmap(tr.init, (0, None), spmd_axis_name=spmd))(
-            place_runs(keys, mesh), 0.0
+        budget = float("nan") if a.budget is None else a.budget
+        state = jax.jit(jax.vmap(tr.init, (0, None, None), spmd_axis_name=spmd))(
+            place_runs(keys, mesh), 0.0, budget
         )
     if a.mode == "train":
         update = jax.jit(jax.vmap(lambda s: tr.update_chunk(s, a.updates)[0], spmd_axis_name=spmd))
@@ -98,7 +113,8 @@ def main(a: Args) -> None:
     layout = dict(mesh.shape) if mesh is not None else "one device"
     print(
         f"{a.mode} K={a.agents} T={a.max_steps} envs={a.num_envs} seeds={a.seeds} "
-        f"remat={a.remat} ({layout}): {steps_per_call / med:,.0f} env steps/s "
+        f"remat={a.remat} shared={a.share_params} budget={a.budget} ({layout}): "
+        f"{steps_per_call / med:,.0f} env steps/s "
         f"(median of {a.repeats}, "
         f"{med:.2f} s/call; compile+first {compile_s:.1f} s) peak RSS {peak_rss:.2f} GiB"
         + (f", device peak {peak_dev:.2f} GiB" if peak_dev else "")

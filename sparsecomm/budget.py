@@ -11,10 +11,12 @@ update's episodes:
 1. **Wait for the team.** Until the team first succeeds (the moving average of its success rate
    reaches ``engage_success``) the weight is the run's lambda (0 by default): nothing is priced
    while the team has yet to learn that talking pays.
-2. **Lower the target gradually.** Once engaged, the target starts at the bits the team sends
-   then and halves every ``halving_updates`` updates until it reaches the budget. It pauses while
-   the team's success has fallen below ``hold_success`` of its best (so the team re-learns before
-   being asked for less).
+2. **Lower the target gradually, and only while the team keeps up.** Once engaged, the target
+   starts at the bits the team sends then and halves every ``halving_updates`` updates until it
+   reaches the budget, as long as the team's success (a moving average) stays at or above
+   ``hold_success`` of its best so far. When success falls below that, the target rises again
+   at the same rate (up to where it started), so the team gets bits back to re-learn before it
+   is asked for less.
 3. **Dual ascent in log space.** ``log w += dual_lr * clip((bits - target) / target, -1, 1)``:
    the weight grows geometrically while the team sends more than the target and shrinks while it
    sends less. In log space one step size serves weights that differ by 1000x, and a silent team
@@ -58,10 +60,12 @@ class BudgetConfig:
     weight_max: float = 1e3
     """Upper bound of the weight. ours: far above any weight a team needs (the delayed-penalty runs
     reached 20 bits per step at lambda 3)."""
-    dual_lr: float = 0.1
+    dual_lr: float = 0.03
     """Step of ``log(weight)`` per update at a relative excess of 100% (the excess
-    ``(bits - target) / target`` is clipped to [-1, 1]). ours: the weight can change 10x in 23
-    updates, fast against the hundreds of updates a team takes to learn."""
+    ``(bits - target) / target`` is clipped to [-1, 1]). ours: the weight can change 10x in 77
+    updates. 0.1 (10x in 23) overshot on the CPU preset: the team's bits answer a new price with
+    a lag of tens of updates, the price rose 20x past the one that met the target, and success
+    collapsed (docs/budget.md)."""
     engage_success: float = 0.5
     """The target starts to fall when the moving average of the batch success rate first reaches
     this. ours."""
@@ -70,8 +74,8 @@ class BudgetConfig:
     imitation probe (issue 14) that lowered the target 10x over 500 updates kept success; one that
     jumped to the budget at once silenced the channel for good."""
     hold_success: float = 0.8
-    """The target stops falling while the moving average of success is below this fraction of its
-    best so far. ours."""
+    """The target falls while the moving average of success is at least this fraction of its best
+    so far, and rises (at the same rate, up to where it started) while it is below. ours."""
     success_ema: float = 0.1
     """Weight of the newest update in the moving average of the success rate. ours."""
 
@@ -126,6 +130,7 @@ class BudgetState(struct.PyTreeNode):
     lam: jax.Array  # () float32, the run's lambda (the weight until engaged, or for good)
     log_weight: jax.Array  # () float32, log of the penalty weight once engaged
     target: jax.Array  # () float32, the current target (inf until engaged)
+    start: jax.Array  # () float32, the target when the controller engaged (inf until then)
     engaged: jax.Array  # () bool, the team has succeeded once: the target has started to fall
     success: jax.Array  # () float32, moving average of the batch success rate
     best: jax.Array  # () float32, the best moving average so far
@@ -139,6 +144,7 @@ def init(cfg: BudgetConfig, budget, lam) -> BudgetState:
         lam=jnp.asarray(lam, f32),
         log_weight=jnp.log(jnp.maximum(jnp.asarray(lam, f32), cfg.weight_init)),
         target=jnp.asarray(jnp.inf, f32),
+        start=jnp.asarray(jnp.inf, f32),
         engaged=jnp.zeros((), bool),
         success=jnp.zeros((), f32),
         best=jnp.zeros((), f32),
@@ -167,16 +173,23 @@ def update(cfg: BudgetConfig, state: BudgetState, bits, success) -> BudgetState:
     ema = (1 - cfg.success_ema) * state.success + cfg.success_ema * success
     best = jnp.maximum(state.best, ema)
     engaging = has_budget(state) & ~state.engaged & (ema >= cfg.engage_success)
-    # The target starts from what the team sends when it first succeeds, then falls gradually.
-    target = jnp.where(engaging, jnp.maximum(bits, state.budget), state.target)
-    falling = state.engaged & (ema >= cfg.hold_success * best)
-    lowered = jnp.maximum(target * 0.5 ** (1.0 / cfg.halving_updates), state.budget)
-    target = jnp.where(falling, lowered, target)
+    # The target starts from what the team sends when it first succeeds, then falls gradually
+    # while the team keeps its success, and rises again while it does not.
+    start = jnp.where(engaging, jnp.maximum(bits, state.budget), state.start)
+    target = jnp.where(engaging, start, state.target)
+    rate = 0.5 ** (1.0 / cfg.halving_updates)
+    keeping_up = ema >= cfg.hold_success * best
+    moved = jnp.where(
+        keeping_up,
+        jnp.maximum(target * rate, state.budget),
+        jnp.minimum(target / rate, start),
+    )
+    target = jnp.where(state.engaged, moved, target)
     engaged = state.engaged | engaging
     excess = jnp.clip((bits - target) / jnp.maximum(target, 1.0), -1.0, 1.0)
     lo, hi = math.log(cfg.weight_min), math.log(cfg.weight_max)
     stepped = jnp.clip(state.log_weight + cfg.dual_lr * excess, lo, hi)
     log_weight = jnp.where(state.engaged, stepped, state.log_weight)
     return state.replace(
-        log_weight=log_weight, target=target, engaged=engaged, success=ema, best=best
+        log_weight=log_weight, target=target, start=start, engaged=engaged, success=ema, best=best
     )

@@ -308,9 +308,9 @@ PRESETS: dict[str, RLConfig] = {
     "small": RLConfig(
         env=SMALL_TASK,
         agent=AgentConfig(message_gate="hard"),
-        budget=BudgetConfig(bits=4.0, halving_updates=30.0),
+        budget=BudgetConfig(bits=4.0),
         num_envs=64,
-        num_updates=600,
+        num_updates=800,
     ),
 }
 """Named starting points for ``sparsecomm train --preset NAME`` (``--config.*`` flags still

@@ -165,9 +165,9 @@ def make_imitate(config: ILConfig, expert: Expert | None = None) -> Imitator:
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         metrics["grad_norm"] = optax.tree.norm(grads)
-        # The team's own success counts only once the learners mostly drive (beta < 1/2): before,
-        # the expert's actions make the episodes succeed.
-        own_success = jnp.where(beta < 0.5, metrics["success_rate"], 0.0)
+        # The team's own success counts only once beta has reached beta_end (the learners drive
+        # as much as they ever will): before, the expert's actions make the episodes succeed.
+        own_success = jnp.where(beta <= config.beta_end, metrics["success_rate"], 0.0)
         controller = bit_budget.update(
             config.budget, state.budget, metrics["bits_per_step"], own_success
         )

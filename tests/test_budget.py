@@ -145,3 +145,22 @@ def test_hard_gate_is_exactly_silent_and_passes_only_gradients_that_reopen():
     # A silent element sends the null message: 0 payload bits, whatever the dither.
     m, _ = channel.quantize(jax.random.key(0), channel.hard_gate(jnp.full((1000,), -3.0)), 15)
     assert int(channel.payload_bits(m, "paper").sum()) == 0
+
+
+def test_target_rises_again_while_the_team_loses_its_success():
+    cfg = BudgetConfig(success_ema=1.0, halving_updates=10.0, hold_success=0.8)
+    state = budget.init(cfg, 10.0, 0.0)
+    step = jax.jit(lambda s, b, ok: budget.update(cfg, s, b, ok))
+    for _ in range(15):  # engaged at 100 bits, then 14 updates of success
+        state = step(state, 100.0, 1.0)
+    low = float(state.target)
+    assert low == pytest.approx(100 * 0.5 ** (14 / 10), rel=1e-4)
+    for _ in range(5):  # success falls below 0.8 of its best: the target climbs back
+        state = step(state, 100.0, 0.5)
+    assert float(state.target) == pytest.approx(low * 2 ** (5 / 10), rel=1e-4)
+    for _ in range(200):  # ... but never above where it started
+        state = step(state, 100.0, 0.5)
+    assert float(state.target) == pytest.approx(100.0)
+    for _ in range(200):  # and down to the budget, not below, once the team keeps up again
+        state = step(state, 5.0, 1.0)
+    assert float(state.target) == pytest.approx(10.0)
