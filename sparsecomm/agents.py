@@ -14,7 +14,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from sparsecomm.channel import gate
+from sparsecomm.channel import bit_penalty, gate
 from sparsecomm.configs import AgentConfig
 
 
@@ -62,7 +62,7 @@ class Actor(nn.Module):
         carry, h = nn.GRUCell(self.gru, recurrent_kernel_init=orthogonal())(carry, h)
         logits = nn.Dense(self.num_actions)(h)
         bias = nn.initializers.constant(self.message_bias_init)
-        a = nn.Dense(self.num_recipients * self.num_elements, bias_init=bias)(h)
+        a = nn.Dense(self.num_recipients * self.num_elements, bias_init=bias, name="message")(h)
         z = gate(self.message_gate, a)
         z = z.reshape(*z.shape[:-1], self.num_recipients, self.num_elements)
         return carry, logits, z
@@ -137,6 +137,19 @@ class Team:
             ids = jnp.broadcast_to(jnp.eye(self.num_agents), (*x.shape[:-1], self.num_agents))
             return self.actor.apply(actor_params, carry, jnp.concatenate([x, ids], axis=-1))
         return jax.vmap(self.actor.apply, in_axes=(0, 1, 1), out_axes=1)(actor_params, carry, x)
+
+    def message_penalty(self, head_params, hidden: jax.Array, levels: int) -> jax.Array:
+        """The bit penalty of the messages the head ``head_params`` (the actors' ``message``
+        layer) emits from GRU states ``hidden`` (..., K, H): summed over each agent's links and
+        elements, (..., K). The same numbers as the rollout's penalty for the same states, as a
+        function of the head alone (for a penalty step outside the optimiser)."""
+        kernel, bias = head_params["kernel"], head_params["bias"]
+        if self.cfg.share_params:
+            a = hidden @ kernel + bias
+        else:  # one head per agent, stacked on a leading agent axis
+            a = jnp.einsum("...kh,khm->...km", hidden, kernel) + bias
+        z = gate(self.cfg.message_gate, a)
+        return bit_penalty(z, levels).sum(-1)
 
     def value(self, critic_params, state: jax.Array) -> jax.Array:
         """(..., state_dim) -> (..., K) values."""

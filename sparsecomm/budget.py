@@ -39,7 +39,16 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-__all__ = ["BudgetConfig", "BudgetState", "check_budget", "init", "log", "update", "weight"]
+__all__ = [
+    "BudgetConfig",
+    "BudgetState",
+    "check_budget",
+    "init",
+    "log",
+    "penalty_step",
+    "update",
+    "weight",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,6 +87,16 @@ class BudgetConfig:
     so far, and rises (at the same rate, up to where it started) while it is below. ours."""
     success_ema: float = 0.1
     """Weight of the newest update in the moving average of the success rate. ours."""
+    decoupled: bool = False
+    """Apply the bit penalty as its own plain gradient step on the message head after the
+    optimiser's step (like AdamW's weight decay), ``head -= decoupled_lr * weight *
+    grad_head(mean penalty)``, instead of inside the loss that Adam normalises. ours: off
+    (docs/budget.md compares them). Inside the loss, Adam rescales the penalty's gradient on the
+    head to full steps once it outweighs the task's, so a price just past the balance silences a
+    team within tens of updates; outside, the step is proportional to the price."""
+    decoupled_lr: float = 1.0
+    """Step size of the decoupled penalty step (per unit of weight). ours: moves a head bias by
+    ~0.01 per update at the engaging weight 0.01."""
 
     def __post_init__(self):
         if self.bits is not None:
@@ -91,6 +110,7 @@ class BudgetConfig:
             "halving_updates": self.halving_updates > 0 and math.isfinite(self.halving_updates),
             "hold_success": 0 <= self.hold_success <= 1,
             "success_ema": 0 < self.success_ema <= 1,
+            "decoupled_lr": self.decoupled_lr > 0 and math.isfinite(self.decoupled_lr),
         }
         allowed = {
             "weight_max": f"finite and >= weight_min ({self.weight_min})",
@@ -193,3 +213,23 @@ def update(cfg: BudgetConfig, state: BudgetState, bits, success) -> BudgetState:
     return state.replace(
         log_weight=log_weight, target=target, start=start, engaged=engaged, success=ema, best=best
     )
+
+
+def penalty_step(cfg: BudgetConfig, actor_params: dict, penalty_of_head, valid, price) -> dict:
+    """The decoupled penalty step (``BudgetConfig.decoupled``) on the actors' ``message`` head.
+
+    ``penalty_of_head(head) -> (T, B, K)`` is the bit penalty of each step's messages as a
+    function of the head alone (the GRU states held fixed, ``Team.message_penalty``); its mean
+    over the valid steps is what the head descends, by ``decoupled_lr * price``.
+    """
+    params = actor_params["params"]
+    valid = valid.astype(jnp.float32)
+
+    def mean_penalty(head):
+        per_step = penalty_of_head(head).sum(-1)
+        return (per_step * valid).sum() / jnp.maximum(valid.sum(), 1.0)
+
+    grads = jax.grad(mean_penalty)(params["message"])
+    size = cfg.decoupled_lr * price
+    head = jax.tree.map(lambda p, g: p - size * g, params["message"], grads)
+    return {**actor_params, "params": {**params, "message": head}}

@@ -137,6 +137,7 @@ def make_imitate(config: ILConfig, expert: Expert | None = None) -> Imitator:
             expert=expert,
             beta=beta,
             remat=config.remat,
+            keep_hidden=config.budget.decoupled,
         )
         valid = traj.valid.astype(jnp.float32)
         nll = -jnp.take_along_axis(traj.log_probs, traj.expert_actions[..., None], -1)[..., 0]
@@ -155,15 +156,26 @@ def make_imitate(config: ILConfig, expert: Expert | None = None) -> Imitator:
             beta=beta,
             expert_agreement=mean(agree.astype(jnp.float32)),
         )
-        return loss, metrics
+        return loss, (metrics, (traj.hidden, traj.valid))
 
     def update(state: ILState):
         key, k_roll = jax.random.split(state.key)
         beta = beta_at(state.update)
         price = bit_budget.weight(state.budget)
-        grads, metrics = jax.grad(loss_fn, has_aux=True)(state.params, k_roll, price, beta)
+        in_loss = 0.0 if config.budget.decoupled else price  # else a step of its own, below
+        grads, (metrics, (hidden, valid)) = jax.grad(loss_fn, has_aux=True)(
+            state.params, k_roll, in_loss, beta
+        )
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
+        if config.budget.decoupled:
+            params["actor"] = bit_budget.penalty_step(
+                config.budget,
+                params["actor"],
+                lambda head: team.message_penalty(head, hidden, config.channel.levels),
+                valid,
+                price,
+            )
         metrics["grad_norm"] = optax.tree.norm(grads)
         # The team's own success counts only once beta has reached beta_end (the learners drive
         # as much as they ever will): before, the expert's actions make the episodes succeed.

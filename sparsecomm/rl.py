@@ -149,7 +149,14 @@ def make_train(config: RLConfig) -> Trainer:
 
     def loss_fn(params, key, lam, update):
         traj: Trajectory = rollout(
-            team, env, config.channel, params["actor"], key, config.num_envs, remat=config.remat
+            team,
+            env,
+            config.channel,
+            params["actor"],
+            key,
+            config.num_envs,
+            remat=config.remat,
+            keep_hidden=config.budget.decoupled,
         )
         valid = traj.valid.astype(jnp.float32)
         values = jax.lax.map(lambda s: team.value(params["critic"], s), traj.states)
@@ -199,14 +206,25 @@ def make_train(config: RLConfig) -> Trainer:
             entropy=mean(entropy.mean(-1)),
             penalty_weight=penalty_weight,
         )
-        return loss, metrics
+        return loss, (metrics, (traj.hidden, traj.valid))
 
     def update(state: TrainState):
         key, k_roll = jax.random.split(state.key)
         price = bit_budget.weight(state.budget)
-        grads, metrics = jax.grad(loss_fn, has_aux=True)(state.params, k_roll, price, state.update)
+        in_loss = 0.0 if config.budget.decoupled else price  # else a step of its own, below
+        grads, (metrics, (hidden, valid)) = jax.grad(loss_fn, has_aux=True)(
+            state.params, k_roll, in_loss, state.update
+        )
         updates, opt_state = tx.update(clip_parts(grads), state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
+        if config.budget.decoupled:
+            params["actor"] = bit_budget.penalty_step(
+                config.budget,
+                params["actor"],
+                lambda head: team.message_penalty(head, hidden, config.channel.levels),
+                valid,
+                price,
+            )
         metrics["actor_grad_norm"] = optax.tree.norm(grads["actor"])
         metrics["critic_grad_norm"] = optax.tree.norm(grads["critic"])
         controller = bit_budget.update(

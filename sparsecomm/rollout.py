@@ -61,6 +61,7 @@ class Trajectory:
     link_bits: jax.Array  # (T, B, K, K) payload bits sent i -> j (zero diagonal)
     msg_log_probs: jax.Array  # (T, B, K) log-prob of sender i's symbols ("reinforced"; else 0)
     env_states: Any = None  # batched NavState per step (only when ``keep_states``)
+    hidden: Any = None  # (T, B, K, H) GRU states the messages came from (only ``keep_hidden``)
 
 
 def link_tables(num_agents: int) -> tuple[np.ndarray, np.ndarray]:
@@ -198,6 +199,7 @@ def rollout(
     greedy: bool = False,
     remat: bool = False,
     keep_states: bool = False,
+    keep_hidden: bool = False,
 ) -> Trajectory:
     """Play ``num_envs`` whole episodes.
 
@@ -212,6 +214,8 @@ def rollout(
       greedy: learners take their most probable action instead of sampling.
       remat: recompute each step in the backward pass (``jax.checkpoint``) to save memory.
       keep_states: also return the environment states (for rendering and tests).
+      keep_hidden: also return the GRU states each step's messages came from (for a penalty
+        step outside the optimiser, ``sparsecomm.budget.penalty_step``).
     """
     k = env.num_agents
     num_steps = env.config.max_steps
@@ -284,6 +288,7 @@ def rollout(
             link_bits=full_link,
             msg_log_probs=msg_logp,
             env_states=state if keep_states else None,
+            hidden=jax.lax.stop_gradient(carry) if keep_hidden else None,
         )
         return (next_state, next_obs, next_msgs, carry, expert_carry), record
 

@@ -1,5 +1,6 @@
 """The bit budget: the controller on a problem with a known answer, and in tiny training runs."""
 
+import dataclasses
 import math
 
 import jax
@@ -13,6 +14,7 @@ from sparsecomm.configs import AgentConfig, ChannelConfig, ILConfig, RLConfig
 from sparsecomm.envs.navigation import NavConfig
 from sparsecomm.imitation import make_imitate
 from sparsecomm.rl import make_train
+from sparsecomm.rollout import rollout
 
 
 def _track(cfg, bits_of_weight, budget_bits, updates, success=1.0, lam=0.0):
@@ -164,3 +166,42 @@ def test_target_rises_again_while_the_team_loses_its_success():
     for _ in range(200):  # and down to the budget, not below, once the team keeps up again
         state = step(state, 5.0, 1.0)
     assert float(state.target) == pytest.approx(10.0)
+
+
+@pytest.mark.parametrize("share", [True, False])
+def test_message_penalty_of_the_head_matches_the_rollout(share, fast_compile):
+    cfg = RLConfig(env=NavConfig(max_steps=6), num_envs=3, agent=AgentConfig(share_params=share))
+    tr = make_train(cfg)
+    actor = tr.team.init(jax.random.key(0))["actor"]
+    traj = rollout(tr.team, tr.env, cfg.channel, actor, jax.random.key(1), 3, keep_hidden=True)
+    head = actor["params"]["message"]
+    again = tr.team.message_penalty(head, traj.hidden, cfg.channel.levels).sum(-1)
+    np.testing.assert_allclose(again, traj.penalty, rtol=1e-5)
+
+
+def test_decoupled_penalty_moves_only_the_message_head_by_its_own_gradient(fast_compile):
+    cfg = dataclasses.replace(TINY_RL, budget=dataclasses.replace(FAST, decoupled=True))
+    tr = make_train(cfg)
+    state = tr.init(jax.random.key(0), 0.3)  # a fixed price 0.3, no budget
+    new, m = jax.jit(tr.update)(state)
+    # Same update without any price: the penalty is then all that differs.
+    free, _ = jax.jit(tr.update)(state.replace(budget=state.budget.replace(lam=jnp.float32(0))))
+    moved = jax.tree.map(lambda a, b: float(jnp.abs(a - b).max()), new.params, free.params)
+    head = moved["actor"]["params"].pop("message")
+    assert max(head.values()) > 0 and max(jax.tree.leaves(moved)) == 0.0
+    # ... and it lowers the penalty of the messages the head would send from the same states.
+    np.testing.assert_array_less(0.0, float(m["penalty"]))
+    trb = make_train(dataclasses.replace(cfg, budget=FAST))  # the penalty inside Adam's loss
+    coupled, _ = jax.jit(trb.update)(state)
+    moved = jax.tree.map(lambda a, b: float(jnp.abs(a - b).max()), coupled.params, free.params)
+    assert max(jax.tree.leaves(moved["actor"]["params"]["Dense_0"])) > 0  # reaches the trunk
+
+
+def test_tiny_rl_run_with_decoupled_penalty_meets_its_budget(fast_compile):
+    fast = dataclasses.replace(FAST, decoupled=True, dual_lr=0.5)
+    tr = make_train(dataclasses.replace(TINY_RL, budget=fast))
+    _, m = jax.jit(jax.vmap(tr.train, (0, None, 0)))(
+        jnp.stack([jax.random.key(0)] * 2), 0.0, jnp.array([jnp.nan, 8.0])
+    )
+    bits = np.asarray(m["bits_per_step"])
+    assert bits[1, -5:].mean() < 0.5 * bits[0, -5:].mean(), bits[:, ::5]
