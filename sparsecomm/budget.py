@@ -94,9 +94,12 @@ class BudgetConfig:
     (docs/budget.md compares them). Inside the loss, Adam rescales the penalty's gradient on the
     head to full steps once it outweighs the task's, so a price just past the balance silences a
     team within tens of updates; outside, the step is proportional to the price."""
-    decoupled_lr: float = 1.0
-    """Step size of the decoupled penalty step (per unit of weight). ours: moves a head bias by
-    ~0.01 per update at the engaging weight 0.01."""
+    decoupled_lr: float = 0.02
+    """Step size of the decoupled penalty step (per unit of weight). ours: at the engaging weight
+    0.01 a head bias whose element is near silence (penalty gradient ~5 per unit of
+    pre-activation) moves by ~1e-3 per update, the size of an Adam step at lr 1e-3, so the task
+    and the price start out even. 1.0 silenced every team at the engaging weight within ~75
+    updates on the CPU preset (docs/budget.md)."""
 
     def __post_init__(self):
         if self.bits is not None:
