@@ -43,6 +43,7 @@ __all__ = [
     "BudgetConfig",
     "BudgetState",
     "check_budget",
+    "decoupled_update",
     "init",
     "log",
     "penalty_step",
@@ -216,6 +217,20 @@ def update(cfg: BudgetConfig, state: BudgetState, bits, success) -> BudgetState:
     return state.replace(
         log_weight=log_weight, target=target, start=start, engaged=engaged, success=ema, best=best
     )
+
+
+def decoupled_update(
+    cfg: BudgetConfig, params: dict, message_penalty, hidden, valid, price, levels
+):
+    """A learner's parameters after the decoupled penalty step (unchanged unless
+    ``cfg.decoupled``). ``message_penalty(head, hidden, levels)`` is ``Team.message_penalty``;
+    ``hidden`` (T, B, K, H) and ``valid`` (T, B) come from the update's rollout."""
+    if not cfg.decoupled:
+        return params
+    actor = penalty_step(
+        cfg, params["actor"], lambda head: message_penalty(head, hidden, levels), valid, price
+    )
+    return {**params, "actor": actor}
 
 
 def penalty_step(cfg: BudgetConfig, actor_params: dict, penalty_of_head, valid, price) -> dict:

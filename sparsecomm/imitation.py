@@ -168,14 +168,9 @@ def make_imitate(config: ILConfig, expert: Expert | None = None) -> Imitator:
         )
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
-        if config.budget.decoupled:
-            params["actor"] = bit_budget.penalty_step(
-                config.budget,
-                params["actor"],
-                lambda head: team.message_penalty(head, hidden, config.channel.levels),
-                valid,
-                price,
-            )
+        params = bit_budget.decoupled_update(
+            config.budget, params, team.message_penalty, hidden, valid, price, config.channel.levels
+        )
         metrics["grad_norm"] = optax.tree.norm(grads)
         # The team's own success counts only once beta has reached beta_end (the learners drive
         # as much as they ever will): before, the expert's actions make the episodes succeed.

@@ -217,14 +217,9 @@ def make_train(config: RLConfig) -> Trainer:
         )
         updates, opt_state = tx.update(clip_parts(grads), state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
-        if config.budget.decoupled:
-            params["actor"] = bit_budget.penalty_step(
-                config.budget,
-                params["actor"],
-                lambda head: team.message_penalty(head, hidden, config.channel.levels),
-                valid,
-                price,
-            )
+        params = bit_budget.decoupled_update(
+            config.budget, params, team.message_penalty, hidden, valid, price, config.channel.levels
+        )
         metrics["actor_grad_norm"] = optax.tree.norm(grads["actor"])
         metrics["critic_grad_norm"] = optax.tree.norm(grads["critic"])
         controller = bit_budget.update(
