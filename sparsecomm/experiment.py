@@ -49,10 +49,10 @@ class Train:
     lams: tuple[float, ...] = (0.0,)
     """Bit-penalty weights to sweep (one vmapped program). With ``--budgets``: the weight each
     run starts from (the controller sets it from then on)."""
-    budgets: tuple[float | None, ...] | None = None
+    budgets: tuple[float | None, ...] = ()
     """Bit budgets to sweep (payload bits per step for the team, the paper's count), one vmapped
-    program with the lambdas and seeds (``None``: a fixed-lambda run beside them); default:
-    ``config.budget.bits``."""
+    program with the lambdas and seeds (``None``: fixed-lambda runs beside them); empty (the
+    default): ``config.budget.bits`` alone."""
     out: Path = Path("runs/train")
     """Output folder: metrics.csv, tensorboard/, checkpoint/, results.json, curves.png, team.gif."""
     chunk: int = 10
@@ -240,7 +240,7 @@ def train(args: Train) -> dict:
     cfg = args.config
     kind = "imitate" if isinstance(args, Imitate) else "train"
     trainer = make_imitate(cfg) if kind == "imitate" else make_train(cfg)
-    budgets = args.budgets if args.budgets is not None else (cfg.budget.bits,)
+    budgets = args.budgets or (cfg.budget.bits,)
     check_budget_fits(cfg, budgets, "budgets")
     spec = SweepSpec(args.seeds, args.lams, tuple(budgets))
     t0 = time.time()
