@@ -124,9 +124,14 @@ def curves(data: dict[str, np.ndarray], metric: str):
     from the largest."""
     out = {}
     budget = data.get("budget", np.full(data["lam"].shape, np.nan))
-    groups = {(float(b), float(lam)) for b, lam in zip(budget, data["lam"], strict=True)}
-    order = sorted(groups, key=lambda g: (not np.isnan(g[0]), -np.nan_to_num(g[0]), g[1]))
+    # NaN != NaN, so the fixed-lambda runs' budget joins a group as None, not as NaN.
+    groups = {
+        (None if np.isnan(b) else float(b), float(lam))
+        for b, lam in zip(budget, data["lam"], strict=True)
+    }
+    order = sorted(groups, key=lambda g: (g[0] is not None, -(g[0] or 0.0), g[1]))
     for b, lam in order:
+        b = np.nan if b is None else b
         sel = (data["lam"] == lam) & ((budget == b) | (np.isnan(budget) & np.isnan(b)))
         seeds = np.unique(data["seed"][sel])
         steps = np.unique(data["env_steps"][sel])
@@ -154,7 +159,7 @@ def _save(fig, legend_ax, title: str | None, out_png: str | Path) -> Path:
     """Legend on ``legend_ax``, optional title, tight layout; write the PNG and close."""
     import matplotlib.pyplot as plt
 
-    legend_ax.legend(fontsize=8)
+    legend_ax.legend(fontsize=8, loc="upper right")  # "best" takes minutes on long curves
     if title:
         fig.suptitle(title)
     fig.tight_layout()

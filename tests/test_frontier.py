@@ -57,3 +57,18 @@ def test_write_makes_json_without_nan_and_a_figure(tmp_path):
     assert "NaN" not in text and json.loads(text)[0]["learner"] == "rl"
     assert len(table) == 5 and (tmp_path / "frontier.png").stat().st_size > 10_000
     assert np.isfinite(table[-1]["success"][0])
+
+
+def test_curves_group_fixed_lambda_runs_once(tmp_path):
+    from sparsecomm.report import curves, read_csv
+
+    rows = ["seed,lam,budget,update,env_steps,success_rate"]
+    for u in (1, 2, 3):
+        for s in (0, 1):
+            rows.append(f"{s},0.0,,{u},{u * 10},{0.1 * u}")
+            rows.append(f"{s},0.0,8,{u},{u * 10},{0.2 * u}")
+    (tmp_path / "m.csv").write_text("\n".join(rows))
+    groups = curves(read_csv(tmp_path / "m.csv"), "success_rate")
+    assert list(groups)[0][1] == 0.0 and np.isnan(list(groups)[0][0]) and len(groups) == 2
+    steps, vals = groups[list(groups)[1]]
+    np.testing.assert_allclose(vals, [[0.2, 0.4, 0.6]] * 2)
