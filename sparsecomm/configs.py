@@ -1,6 +1,6 @@
 """Typed configurations. Every field documents where its default comes from.
 
-``paper``: stated in the paper (``../shared/paper.md``); ``SPEC``: pinned by SPEC.md, often from
+``paper``: stated in the paper (``docs/paper.md``); ``SPEC``: pinned by ``docs/spec.md``, often from
 its calibration run; ``ours``: chosen here, by measurement where a number is given.
 """
 
