@@ -43,10 +43,6 @@ class ILState(struct.PyTreeNode):
     update: jax.Array
     budget: bit_budget.BudgetState  # this run's lambda, bit budget and penalty-weight controller
 
-    @property
-    def lam(self) -> jax.Array:
-        return self.budget.lam
-
 
 def oracle_expert(env: NavigationEnv) -> Expert:
     """The centralised scripted controller as an :class:`Expert` (stateless, sends nothing)."""

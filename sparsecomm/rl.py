@@ -50,10 +50,6 @@ class TrainState(struct.PyTreeNode):
     update: jax.Array  # () int32, updates done
     budget: bit_budget.BudgetState  # this run's lambda, bit budget and penalty-weight controller
 
-    @property
-    def lam(self) -> jax.Array:
-        return self.budget.lam
-
 
 def discounted_targets(rewards, values, dones, valid, gamma, gae_lambda):
     """Advantages and value targets, (T, B, K), by a backward scan over time.
