@@ -76,6 +76,11 @@ class BudgetConfig:
     updates. 0.1 (10x in 23) overshot on the CPU preset: the team's bits answer a new price with
     a lag of tens of updates, the price rose 20x past the one that met the target, and success
     collapsed (docs/budget.md)."""
+    relief_lr: float | None = None
+    """Step of ``log(weight)`` per update while the team sends less than its target or its
+    success is below ``hold_success`` of its best (then the price falls at this rate whatever
+    the bits): how fast the price gives way once bits fall off the cliff. ``None``: ``dual_lr``
+    (a symmetric step). ours: ``None``; docs/budget.md measures 0.3 (10x in 8 updates)."""
     engage_success: float = 0.5
     """The target starts to fall when the moving average of the batch success rate first reaches
     this. ours."""
@@ -110,6 +115,8 @@ class BudgetConfig:
             "weight_min": self.weight_min > 0 and math.isfinite(self.weight_min),
             "weight_max": self.weight_max >= self.weight_min and math.isfinite(self.weight_max),
             "dual_lr": self.dual_lr > 0 and math.isfinite(self.dual_lr),
+            "relief_lr": self.relief_lr is None
+            or (self.relief_lr > 0 and math.isfinite(self.relief_lr)),
             "engage_success": 0 <= self.engage_success <= 1,
             "halving_updates": self.halving_updates > 0 and math.isfinite(self.halving_updates),
             "hold_success": 0 <= self.hold_success <= 1,
@@ -117,6 +124,7 @@ class BudgetConfig:
             "decoupled_lr": self.decoupled_lr > 0 and math.isfinite(self.decoupled_lr),
         }
         allowed = {
+            "relief_lr": "None or finite and > 0",
             "weight_max": f"finite and >= weight_min ({self.weight_min})",
             "engage_success": "in [0, 1]",
             "hold_success": "in [0, 1]",
@@ -211,8 +219,13 @@ def update(cfg: BudgetConfig, state: BudgetState, bits, success) -> BudgetState:
     target = jnp.where(state.engaged, moved, target)
     engaged = state.engaged | engaging
     excess = jnp.clip((bits - target) / jnp.maximum(target, 1.0), -1.0, 1.0)
+    if cfg.relief_lr is None:
+        step = cfg.dual_lr * excess
+    else:  # the price gives way fast below the target, and whenever success is down
+        relief = jnp.where(keeping_up, jnp.minimum(excess, 0.0), -1.0)
+        step = jnp.where(keeping_up & (excess > 0), cfg.dual_lr * excess, cfg.relief_lr * relief)
     lo, hi = math.log(cfg.weight_min), math.log(cfg.weight_max)
-    stepped = jnp.clip(state.log_weight + cfg.dual_lr * excess, lo, hi)
+    stepped = jnp.clip(state.log_weight + step, lo, hi)
     log_weight = jnp.where(state.engaged, stepped, state.log_weight)
     return state.replace(
         log_weight=log_weight, target=target, start=start, engaged=engaged, success=ema, best=best

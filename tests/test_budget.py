@@ -205,3 +205,21 @@ def test_tiny_rl_run_with_decoupled_penalty_meets_its_budget(fast_compile):
     )
     bits = np.asarray(m["bits_per_step"])
     assert bits[1, -5:].mean() < 0.5 * bits[0, -5:].mean(), bits[:, ::5]
+
+
+def test_relief_rate_lets_the_price_fall_fast_below_the_target_and_while_success_is_down():
+    cfg = BudgetConfig(success_ema=1.0, dual_lr=0.03, relief_lr=0.3, weight_init=0.01)
+    state = budget.init(cfg, 10.0, 0.0)
+    step = jax.jit(lambda s, b, ok: budget.update(cfg, s, b, ok))
+    state = step(state, 100.0, 1.0)  # engages at 100 bits
+    w0 = float(budget.weight(state))
+    state = step(state, 150.0, 1.0)  # above target: the slow rise
+    target = 100 * 0.5 ** (1 / 50)  # halving every 50 updates
+    expected = w0 * math.exp(0.03 * (150 - target) / target)
+    assert float(budget.weight(state)) == pytest.approx(expected, rel=1e-4)
+    w1 = float(budget.weight(state))
+    state = step(state, 0.0, 1.0)  # bits fell off the cliff: relief at the full rate
+    assert float(budget.weight(state)) == pytest.approx(w1 * math.exp(-0.3), rel=1e-4)
+    w2 = float(budget.weight(state))
+    state = step(state, 500.0, 0.1)  # success down: the price falls whatever the bits
+    assert float(budget.weight(state)) == pytest.approx(w2 * math.exp(-0.3), rel=1e-4)
