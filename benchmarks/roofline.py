@@ -27,7 +27,7 @@ import jax
 import jax.numpy as jnp
 
 from sparsecomm.configs import RLConfig
-from sparsecomm.rl import make_team
+from sparsecomm.learner import make_team
 
 
 def layer_shapes(cfg: RLConfig, env, team):

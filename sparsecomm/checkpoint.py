@@ -1,30 +1,47 @@
-"""Checkpoints without pickle: msgpack for arrays (``flax.serialization``), JSON for configs.
+"""Checkpoints that cannot lie: msgpack for arrays (``flax.serialization``), JSON for configs.
 
-A checkpoint folder holds ``state.msgpack`` (the batched train state of every run of a sweep) and
-``config.json`` (the configuration and the sweep axes). Loading executes no code from the file.
-Writes are atomic (temporary file, then rename), so a run killed mid-write keeps the previous
-checkpoint.
+A checkpoint folder holds ``state.msgpack`` (the batched train state of every run of a sweep)
+and ``config.json`` (the configuration, the sweep axes, and the SHA-256 of ``state.msgpack``).
+Loading executes no code from the files.
+
+A save writes a whole new folder beside the old one (``<name>.new``: both files, each fsynced),
+then swaps it in by renames (``<name>`` -> ``<name>.old``, ``<name>.new`` -> ``<name>``, then the
+old one is removed). A run killed at any moment therefore leaves either the previous checkpoint
+or the new one, whole; :func:`load_meta` and :func:`load` find whichever survived. A file that
+was changed, truncated or removed afterwards is refused with a :class:`CheckpointError` naming
+it, never loaded as if it were right.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
+import shutil
 from pathlib import Path
 
 import jax
 from flax import serialization
 
+from sparsecomm.errors import CheckpointError
 from sparsecomm.sharding import is_key, is_primary, raw_keys, to_host
 
+STATE, META = "state.msgpack", "config.json"
 
-def _atomic_write(path: Path, data: bytes) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as f:
+
+def _write(path: Path, data: bytes) -> None:
+    with open(path, "wb") as f:
         f.write(data)
         f.flush()
         os.fsync(f.fileno())
-    os.replace(tmp, path)
+
+
+def _sync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def save(folder: str | os.PathLike, state, meta: dict) -> None:
@@ -37,31 +54,76 @@ def save(folder: str | os.PathLike, state, meta: dict) -> None:
     if not is_primary():
         return
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    _atomic_write(folder / "state.msgpack", serialization.to_bytes(raw))
-    _atomic_write(folder / "config.json", json.dumps(meta, indent=2).encode())
+    new, old = folder.with_name(folder.name + ".new"), folder.with_name(folder.name + ".old")
+    shutil.rmtree(new, ignore_errors=True)
+    new.mkdir(parents=True)
+    data = serialization.to_bytes(raw)
+    _write(new / STATE, data)
+    meta = {**meta, "state_sha256": hashlib.sha256(data).hexdigest()}
+    _write(new / META, json.dumps(meta, indent=2).encode())
+    _sync_dir(new)
+    if folder.exists():
+        shutil.rmtree(old, ignore_errors=True)
+        os.replace(folder, old)
+    os.replace(new, folder)
+    _sync_dir(folder.parent)
+    shutil.rmtree(old, ignore_errors=True)
 
 
-def load_meta(folder: str | os.PathLike) -> dict:
-    path = Path(folder) / "config.json"
-    if not path.exists():
-        raise FileNotFoundError(f"no checkpoint in {folder} (missing {path.name})")
-    return json.loads(path.read_text())
-
-
-def load(folder: str | os.PathLike, template):
-    """Restore a state saved by :func:`save` into the structure of ``template``."""
-    path = Path(folder) / "state.msgpack"
-    if not path.exists():
-        raise FileNotFoundError(f"no checkpoint in {folder} (missing {path.name})")
-    raw_template = raw_keys(template)
-    raw = serialization.from_bytes(raw_template, path.read_bytes())
-    return jax.tree.map(
-        lambda t, r: jax.random.wrap_key_data(r) if is_key(t) else jax.numpy.asarray(r),
-        template,
-        raw,
-    )
+def _current(folder: str | os.PathLike) -> Path:
+    """The folder holding the checkpoint: ``folder``, or ``folder.old`` when a save was
+    interrupted between its two renames."""
+    folder = Path(folder)
+    old = folder.with_name(folder.name + ".old")
+    if not folder.exists() and old.exists():
+        return old
+    return folder
 
 
 def exists(folder: str | os.PathLike) -> bool:
-    return (Path(folder) / "state.msgpack").exists()
+    """A checkpoint folder is there (whole or not: loading it says which)."""
+    return _current(folder).exists()
+
+
+def load_meta(folder: str | os.PathLike) -> dict:
+    """The JSON metadata of a checkpoint (``CheckpointError`` if missing or unreadable)."""
+    path = _current(folder) / META
+    if not path.exists():
+        raise CheckpointError(f"checkpoint {folder} is incomplete: {path} is missing")
+    try:
+        meta = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise CheckpointError(f"checkpoint file {path} is damaged (not valid JSON: {e})") from None
+    if not isinstance(meta, dict) or "state_sha256" not in meta:
+        raise CheckpointError(
+            f"checkpoint file {path} has no state_sha256 (damaged, or written by an older "
+            "sparsecomm that did not record digests)"
+        )
+    return meta
+
+
+def load(folder: str | os.PathLike, template):
+    """Restore a state saved by :func:`save` into the structure of ``template``, after checking
+    the SHA-256 of ``state.msgpack`` against the one recorded at save time."""
+    meta = load_meta(folder)
+    path = _current(folder) / STATE
+    if not path.exists():
+        raise CheckpointError(f"checkpoint {folder} is incomplete: {path} is missing")
+    data = path.read_bytes()
+    if hashlib.sha256(data).hexdigest() != meta["state_sha256"]:
+        raise CheckpointError(
+            f"checkpoint file {path} is damaged: its SHA-256 differs from the one recorded when "
+            f"it was saved ({len(data)} bytes now)"
+        )
+    raw_template = raw_keys(template)
+    try:
+        raw = serialization.from_bytes(raw_template, data)
+        return jax.tree.map(
+            lambda t, r: jax.random.wrap_key_data(r) if is_key(t) else jax.numpy.asarray(r),
+            template,
+            raw,
+        )
+    except (ValueError, TypeError, KeyError) as e:
+        raise CheckpointError(
+            f"checkpoint file {path} does not hold this run's state ({type(e).__name__}: {e})"
+        ) from None

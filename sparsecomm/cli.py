@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 from sparsecomm.configs import PRESETS
+from sparsecomm.errors import RunError
 from sparsecomm.experiment import (
     Eval,
     Export,
@@ -21,6 +22,7 @@ from sparsecomm.experiment import (
     render,
     train,
 )
+from sparsecomm.reproduce import Reproduce, reproduce
 
 
 def _take_preset(argv: list[str]) -> tuple[str | None, list[str]]:
@@ -33,43 +35,52 @@ def _take_preset(argv: list[str]) -> tuple[str | None, list[str]]:
     return None, argv
 
 
-def main(argv: list[str] | None = None) -> None:
+COMMANDS = {
+    "train": (Train, train),
+    "imitate": (Imitate, train),
+    "eval": (Eval, evaluate),
+    "render": (Render, render),
+    "export": (Export, export_team),
+    "reproduce": (Reproduce, reproduce),
+}
+
+
+def parse(argv: list[str]):
+    """The command's arguments, checked: every config's ``__post_init__`` has run."""
     import tyro
 
-    from sparsecomm.reproduce import Reproduce, reproduce
-
-    preset, argv = _take_preset(list(sys.argv[1:] if argv is None else argv))
+    preset, argv = _take_preset(argv)
     if preset is not None:  # ``sparsecomm train --preset NAME [--config.* ...]``
         if preset not in PRESETS or not argv or argv[0] != "train":
-            raise SystemExit(
+            raise ValueError(
                 f"--preset must be one of {sorted(PRESETS)} and follow 'sparsecomm train', "
                 f"got {preset!r}"
             )
         default = Train(config=PRESETS[preset], out=Path("runs") / preset)
-        train(
-            tyro.cli(
-                Train, default=default, args=argv[1:], prog=f"sparsecomm train --preset {preset}"
-            )
-        )
-        return
+        prog = f"sparsecomm train --preset {preset}"
+        return tyro.cli(Train, default=default, args=argv[1:], prog=prog)
+    commands = {name: cls for name, (cls, _) in COMMANDS.items()}
+    return tyro.extras.subcommand_cli_from_dict(commands, args=argv)
 
-    commands = {
-        "train": Train,
-        "imitate": Imitate,
-        "eval": Eval,
-        "render": Render,
-        "export": Export,
-    }
-    cmd = tyro.extras.subcommand_cli_from_dict({**commands, "reproduce": Reproduce}, args=argv)
-    handler = {
-        Train: train,
-        Imitate: train,
-        Eval: evaluate,
-        Render: render,
-        Export: export_team,
-        Reproduce: reproduce,
-    }
-    handler[type(cmd)](cmd)
+
+def _fail(error: BaseException, code: int) -> SystemExit:
+    print(f"sparsecomm: error: {error}", file=sys.stderr)
+    return SystemExit(code)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Parse, check, run. A user error (a bad value, a refused checkpoint or resume, a program
+    too large for the devices) prints one line and exits 2; a diverged run exits 3; anything
+    else is a bug and keeps its traceback."""
+    try:
+        cmd = parse(list(sys.argv[1:] if argv is None else argv))
+    except ValueError as e:  # raised by the configs' checks while parsing, before any work
+        raise _fail(e, 2) from None
+    handler = {cls: run for cls, run in COMMANDS.values()}[type(cmd)]
+    try:
+        handler(cmd)
+    except RunError as e:
+        raise _fail(e, e.exit_code) from None
 
 
 if __name__ == "__main__":

@@ -2,6 +2,8 @@
 
 ``paper``: stated in the paper (``docs/paper.md``); ``SPEC``: pinned by ``docs/spec.md``, often from
 its calibration run; ``ours``: chosen here, by measurement where a number is given.
+The channel's own configuration, ``ChannelConfig``, lives with the channel
+(``sparsecomm.channel.links``); the learners' configurations here hold one.
 """
 
 from __future__ import annotations
@@ -10,65 +12,21 @@ import dataclasses
 import math
 
 from sparsecomm.budget import BudgetConfig, check_budget
-from sparsecomm.channel import CODE_NAMES, GATES, Code
+from sparsecomm.channel import GATES, ChannelConfig
 from sparsecomm.envs.navigation import NavConfig
-
-CHANNEL_MODES = ("discrete", "continuous", "off", "reinforced")
 
 
 def _bad(owner: str, name: str, value, allowed: str) -> ValueError:
     return ValueError(f"{owner}.{name} must be {allowed}, got {value!r}")
 
 
-@dataclasses.dataclass(frozen=True)
-class ChannelConfig:
-    """The message channel between agents (SPEC sections 1-3)."""
-
-    mode: str = "discrete"
-    """``discrete``: dithered quantization, the paper's method. ``continuous``: real-valued
-    messages sent as float32 (a baseline, 32 bits per element). ``off``: no communication
-    (messages are zeros, 0 bits; a baseline). ``reinforced``: reinforced communication learning
-    (RCL, a baseline): each element's symbol is sampled as an action, m ~ Binomial(levels, z),
-    the receiver gets m / levels with no gradient through the channel, and the senders learn by
-    policy gradient on the log-probability of the symbols sent, with ``bit_cost`` per bit."""
-    levels: int = 15
-    """|M|, symbols per element are {0, ..., levels}. SPEC section 1."""
-    num_elements: int = 10
-    """C, elements of the signal z each agent sends to each recipient per step. Paper: 10."""
-    code: str = "paper"
-    """Code used to count payload bits (and frame them on the wire) for the ``discrete`` and
-    ``reinforced`` modes:
-    ``paper`` (the paper's variable-length code, Elias-gamma framing) or ``fixed`` (fixed-width,
-    a baseline). SPEC section 2."""
-    bit_cost: float = 0.0
-    """``reinforced`` mode only: reward subtracted from agent i at step t per payload bit it
-    sends (paper reward units, scaled by ``reward_scale`` like the task reward; not included in
-    the logged group reward). Neither the paper nor SPEC gives a value; ours: 0 (no cost), and
-    ``sparsecomm reproduce`` uses 0.001, the price per bit that the surrogate penalty sets at
-    lambda = 0.001 (lambda is in the same units, see ``sparsecomm.rl``)."""
-
-    def __post_init__(self):
-        if self.mode not in CHANNEL_MODES:
-            raise _bad("ChannelConfig", "mode", self.mode, f"one of {CHANNEL_MODES}")
-        if not isinstance(self.levels, int) or isinstance(self.levels, bool) or self.levels < 1:
-            raise _bad("ChannelConfig", "levels", self.levels, "an integer >= 1")
-        if not isinstance(self.num_elements, int) or self.num_elements < 1:
-            raise _bad("ChannelConfig", "num_elements", self.num_elements, "an integer >= 1")
-        if self.code not in CODE_NAMES[:2]:
-            raise _bad("ChannelConfig", "code", self.code, f"one of {CODE_NAMES[:2]}")
-        if not (self.bit_cost >= 0 and self.bit_cost < float("inf")):
-            raise _bad("ChannelConfig", "bit_cost", self.bit_cost, "finite and >= 0")
-
-    @property
-    def code_obj(self) -> Code:
-        return Code("float32" if self.mode == "continuous" else self.code, self.levels)
-
-    def max_bits_per_step(self, num_agents: int) -> int:
-        """The most payload bits a team of ``num_agents`` can send in one step: every element of
-        every link at the code's longest codeword."""
-        code = self.code_obj
-        per_element = code.max_paper_length if code.name == "paper" else code.fixed_width
-        return num_agents * (num_agents - 1) * self.num_elements * per_element
+def _check_finite(config) -> None:
+    """Every number of ``config`` (its own fields, not nested configs) is finite."""
+    for field in dataclasses.fields(config):
+        value = getattr(config, field.name)
+        if isinstance(value, int | float) and not isinstance(value, bool):
+            if not math.isfinite(value):
+                raise _bad(type(config).__name__, field.name, value, "finite")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -164,6 +122,7 @@ class RLConfig:
     """Base PRNG seed; seed s of a sweep uses ``seed + s``."""
 
     def __post_init__(self):
+        _check_finite(self)
         checks = {
             "num_envs": (self.num_envs >= 1, ">= 1"),
             "num_updates": (self.num_updates >= 0, ">= 0"),
@@ -258,6 +217,7 @@ class ILConfig:
     """Base PRNG seed; seed s of a sweep uses ``seed + s``."""
 
     def __post_init__(self):
+        _check_finite(self)
         checks = {
             "expert": (self.expert in EXPERTS, f"one of {EXPERTS}"),
             "expert_checkpoint": (

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import time
 from pathlib import Path
 
 import jax
@@ -19,9 +18,14 @@ from flax import serialization
 
 from sparsecomm import checkpoint
 from sparsecomm.configs import ILConfig, RLConfig, check_budget_fits, from_dict, to_dict
-from sparsecomm.imitation import make_imitate
-from sparsecomm.report import bootstrap_ci, plot_curves
+from sparsecomm.envs.navigation import NavigationEnv
+from sparsecomm.envs.render import render_frames, write_gif
+from sparsecomm.errors import RunError
+from sparsecomm.imitation import make_imitate, oracle_expert, team_expert
+from sparsecomm.jsonfile import write_json
+from sparsecomm.memory import check_fits
 from sparsecomm.rl import make_train
+from sparsecomm.rollout import Expert, rollout
 from sparsecomm.sharding import (
     RUNS,
     Distributed,
@@ -31,6 +35,7 @@ from sparsecomm.sharding import (
     to_host,
     use_mesh,
 )
+from sparsecomm.stats import bootstrap_ci, plot_curves
 from sparsecomm.sweep import Run, SweepSpec, run_arrays, run_sweep, spec_from_meta
 
 EVAL_SEED_OFFSET = 1_000_003
@@ -73,6 +78,11 @@ class Train:
     """Multi-host: every process runs this command; the runs and episodes are split over all
     processes' devices, process 0 writes the files."""
 
+    def __post_init__(self):
+        _at_least(self, seeds=1, chunk=1, checkpoint_every=1, eval_episodes=1)
+        SweepSpec(self.seeds, tuple(self.lams), tuple(self.budgets) or (None,))  # lams, budgets
+        check_budget_fits(self.config, self.budgets or None, "budgets")
+
 
 @dataclasses.dataclass
 class Imitate(Train):
@@ -99,6 +109,9 @@ class Eval:
     """JSON file to write (default: ``<run>/eval.json``; ``runs/pretrained/eval.json`` for the
     shipped team)."""
 
+    def __post_init__(self):
+        _at_least(self, episodes=1)
+
 
 @dataclasses.dataclass
 class Render:
@@ -116,6 +129,9 @@ class Render:
     fps: int = 12
     """Frames per second."""
 
+    def __post_init__(self):
+        _at_least(self, index=0, fps=1)
+
 
 @dataclasses.dataclass
 class Export:
@@ -130,26 +146,74 @@ class Export:
     note: str = ""
     """Free text stored in ``team.json`` (e.g. the command that trained it)."""
 
+    def __post_init__(self):
+        _at_least(self, index=0)
+
+
+def _check_index(args, runs) -> None:
+    if not 0 <= args.index < len(runs):
+        raise RunError(
+            f"{type(args).__name__}.index must be in [0, {len(runs) - 1}] (the runs of "
+            f"{args.run}), got {args.index}"
+        )
+
+
+def _at_least(args, **lowest) -> None:
+    """Refuse an integer field below its lowest allowed value, naming the field."""
+    for name, low in lowest.items():
+        value = getattr(args, name)
+        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+            raise ValueError(
+                f"{type(args).__name__}.{name} must be an integer >= {low}, got {value!r}"
+            )
+
 
 PRETRAINED = Path(__file__).parent / "pretrained" / "sparse_team"
 """The trained sparse team shipped with the package (docs/budget.md says how it was trained)."""
 
 
-KINDS = {"train": (RLConfig, make_train), "imitate": (ILConfig, make_imitate)}
+def load_expert(config: ILConfig) -> Expert:
+    """The expert ``config`` names: the oracle, or run ``expert_index`` of the RL run folder (or
+    exported team) ``expert_checkpoint``, acting greedily over its own channel."""
+    if config.expert == "oracle":
+        return oracle_expert(NavigationEnv(config.env))
+    rl_config, trainer, runs, actor = load_run(Path(config.expert_checkpoint))
+    if rl_config.env != config.env:
+        raise RunError(
+            "ILConfig.expert_checkpoint was trained on a different task (env config): "
+            f"{rl_config.env} vs {config.env}"
+        )
+    if not 0 <= config.expert_index < len(runs):
+        raise RunError(
+            f"ILConfig.expert_index must be in [0, {len(runs) - 1}], got {config.expert_index}"
+        )
+    params = jax.tree.map(lambda x: x[config.expert_index], actor)
+    return team_expert(trainer.team, rl_config.channel, params)
+
+
+def make_learner(config: RLConfig | ILConfig):
+    """The learner of a config: RL, or imitation of the expert the config names."""
+    if isinstance(config, ILConfig):
+        return make_imitate(config, load_expert(config))
+    return make_train(config)
+
+
+KINDS = {"train": RLConfig, "imitate": ILConfig}
 
 
 def _learner(kind: str, config_dict: dict, where: Path):
     if kind not in KINDS:
         raise ValueError(f"{where} holds a {kind!r} run, not one of {list(KINDS)}")
-    config_cls, make = KINDS[kind]
-    config = from_dict(config_cls, config_dict)
-    return config, make(config)
+    config = from_dict(KINDS[kind], config_dict)
+    return config, make_learner(config)
 
 
 def load_run(folder: Path):
     """A run folder (or an exported team's) as ``(config, learner, runs, actor_params)``, the
     actors' parameters with a leading run axis. Reads msgpack and JSON only (no pickle)."""
     folder = Path(folder)
+    if not folder.is_dir():
+        raise RunError(f"no run folder at {folder}")
     if (folder / "team.json").exists():  # an exported team: one run, weights only
         meta = json.loads((folder / "team.json").read_text())
         config, trainer = _learner(meta["kind"], meta["config"], folder)
@@ -168,8 +232,7 @@ def load_run(folder: Path):
 def export_team(args: Export) -> Path:
     """Write run ``args.index`` of a run folder as an exported team (see :class:`Export`)."""
     config, trainer, runs, actor = load_run(args.run)
-    if not 0 <= args.index < len(runs):
-        raise ValueError(f"index must be in [0, {len(runs) - 1}], got {args.index}")
+    _check_index(args, runs)
     kind = "imitate" if isinstance(config, ILConfig) else "train"
     one = jax.tree.map(lambda x: np.asarray(x[args.index]), to_host(actor))
     args.out.mkdir(parents=True, exist_ok=True)
@@ -179,7 +242,7 @@ def export_team(args: Export) -> Path:
         "run": runs[args.index]._asdict(),
         "note": args.note,
     }
-    (args.out / "team.json").write_text(json.dumps(meta, indent=2))
+    write_json(args.out / "team.json", meta)
     (args.out / "actor.msgpack").write_bytes(serialization.to_bytes(one))
     print(f"-> {args.out}")
     return args.out
@@ -218,8 +281,6 @@ def evaluate_runs(
 
 
 def render_run(trainer, actor_params, seed: int, out: Path, fps: int = 12) -> Path:
-    from sparsecomm.envs.render import render_frames, write_gif
-    from sparsecomm.rollout import rollout
 
     traj = jax.jit(
         lambda p, k: rollout(
@@ -239,12 +300,11 @@ def train(args: Train) -> dict:
     args.distributed.initialize()
     cfg = args.config
     kind = "imitate" if isinstance(args, Imitate) else "train"
-    trainer = make_imitate(cfg) if kind == "imitate" else make_train(cfg)
+    trainer = make_learner(cfg)
     budgets = args.budgets or (cfg.budget.bits,)
-    check_budget_fits(cfg, budgets, "budgets")
     spec = SweepSpec(args.seeds, args.lams, tuple(budgets))
-    t0 = time.time()
-    state, runs = run_sweep(
+    check_fits(trainer, len(spec.runs()), args.eval_episodes, jax.devices())
+    state, runs, wall = run_sweep(
         trainer,
         cfg,
         spec,
@@ -260,7 +320,6 @@ def train(args: Train) -> dict:
         kind=kind,
         devices=jax.devices(),
     )
-    wall = time.time() - t0
     actor = state.params["actor"]
     results = evaluate_runs(trainer, runs, actor, args.eval_episodes, devices=jax.devices())
     results.update(
@@ -274,7 +333,7 @@ def train(args: Train) -> dict:
         actor0 = jax.tree.map(lambda x: x[0], to_host(actor))
     if not is_primary():
         return results
-    (args.out / "results.json").write_text(json.dumps(results, indent=2))
+    write_json(args.out / "results.json", results)
     print(f"results -> {args.out / 'results.json'}")
     for group, m in results["by_group"].items():
         name = group if group.startswith("budget") else f"lambda={group}"
@@ -309,7 +368,7 @@ def evaluate(args: Eval) -> dict:
     results = evaluate_runs(trainer, runs, actor, args.episodes, args.greedy)
     out = args.out or outputs / "eval.json"
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(results, indent=2))
+    write_json(out, results)
     print(json.dumps(results["by_group"], indent=2))
     print(f"-> {out}")
     return results
@@ -318,8 +377,7 @@ def evaluate(args: Eval) -> dict:
 def render(args: Render) -> Path:
     run, outputs = _run_and_outputs(args.run)
     _, trainer, runs, actor = load_run(run)
-    if not 0 <= args.index < len(runs):
-        raise ValueError(f"index must be in [0, {len(runs) - 1}], got {args.index}")
+    _check_index(args, runs)
     params = jax.tree.map(lambda x: x[args.index], actor)
     out = args.out or outputs / "team.gif"
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -6,7 +6,7 @@ Reads the ``results.json`` of trained sweeps (``sparsecomm train|imitate --budge
 - ``summary.json``: a list of rows ``{"learner": "rl"|"imitation", "budget": float|null,
   "lam": float, "seeds": int, "success": [mean, lo, hi], "payload_bits": [...],
   "wire_bits": [...], "episode_length": [...]}``, one per (learner, budget, lambda) group, over
-  its seeds (95% CIs of :func:`sparsecomm.report.bootstrap_ci`);
+  its seeds (95% CIs of :func:`sparsecomm.stats.bootstrap_ci`);
 - ``frontier.png``: success against payload bits and against wire bits per step, budgets joined
   by a line, fixed-lambda points beside them;
 - the budget-matched verdicts of the paper's claims 4 and 5 (:func:`budget_claims`) and the
@@ -21,13 +21,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
 
 import numpy as np
 
-from sparsecomm.report import bootstrap_ci
-from sparsecomm.report_md import BITS_FACTOR, IL_MIN_SUCCESS, IL_SUCCESS_TOL, keeps_performance
+from sparsecomm.claims import BITS_FACTOR, IL_MIN_SUCCESS, IL_SUCCESS_TOL, keeps_performance
+from sparsecomm.jsonfile import write_json
+from sparsecomm.stats import bootstrap_ci
 
 COLUMNS = {
     "success": "success_rate",
@@ -65,7 +65,7 @@ def reference(table: list[dict], learner: str) -> dict | None:
 
 
 def _stats(row: dict) -> dict:
-    """A row in the ``{metric: {mean, ci_low, ci_high}}`` form of :mod:`sparsecomm.report_md`."""
+    """A row in the ``{metric: {mean, ci_low, ci_high}}`` form of :mod:`sparsecomm.claims`."""
     return {
         COLUMNS[name]: dict(zip(("mean", "ci_low", "ci_high"), row[name], strict=True))
         for name in ("success", "episode_length")
@@ -76,7 +76,7 @@ def budget_claims(table: list[dict]) -> list[dict]:
     """Claims 4 (RL) and 5 (imitation) judged at budget-matched points, labelled as such.
 
     Claim 4 at budgets: some budget sends <= 1/``BITS_FACTOR`` of lambda 0's payload bits while
-    keeping its success rate and episode length (:func:`sparsecomm.report_md.keeps_performance`).
+    keeping its success rate and episode length (:func:`sparsecomm.claims.keeps_performance`).
     Claim 5 at budgets (its sparse half; the collapse half is a property of a fixed lambda): the
     imitation reference reaches ``IL_MIN_SUCCESS`` and some budget sends <= 1/``BITS_FACTOR`` of
     its bits losing at most ``IL_SUCCESS_TOL`` success.
@@ -199,21 +199,10 @@ def plot(table: list[dict], out_png: str | Path, title: str | None = None) -> Pa
     return out_png
 
 
-def _finite(x):
-    """JSON has no NaN: non-finite numbers become null."""
-    if isinstance(x, dict):
-        return {k: _finite(v) for k, v in x.items()}
-    if isinstance(x, list):
-        return [_finite(v) for v in x]
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
-
-
 def write_rows(table: list[dict], path: str | Path) -> Path:
     """The rows as JSON (non-finite numbers as null)."""
     path = Path(path)
-    path.write_text(json.dumps(_finite(table), indent=2))
+    write_json(path, table)
     return path
 
 

@@ -16,32 +16,17 @@ others and how to read what they say.
 
 from __future__ import annotations
 
-import dataclasses
-from collections.abc import Callable
-from pathlib import Path
-
 import jax
 import jax.numpy as jnp
 import optax
-from flax import struct
 
-from sparsecomm import budget as bit_budget
+from sparsecomm import channel
 from sparsecomm.agents import Team
 from sparsecomm.configs import ILConfig
 from sparsecomm.envs.navigation import NavigationEnv
 from sparsecomm.envs.oracle import oracle_actions
-from sparsecomm.rl import make_team
-from sparsecomm.rollout import Expert, deliver, episode_metrics, rollout, step_dither, transmit
-
-
-class ILState(struct.PyTreeNode):
-    """Learners' parameters, optimiser, PRNG and counters (the expert is a constant)."""
-
-    params: dict
-    opt_state: optax.OptState
-    key: jax.Array
-    update: jax.Array
-    budget: bit_budget.BudgetState  # this run's lambda, bit budget and penalty-weight controller
+from sparsecomm.learner import Learner, make_learner, make_team, masked_mean
+from sparsecomm.rollout import Expert, episode_metrics, rollout
 
 
 def oracle_expert(env: NavigationEnv) -> Expert:
@@ -70,51 +55,26 @@ def team_expert(team: Team, channel_cfg, actor_params) -> Expert:
     def step(carry, key, state, obs):
         h, msgs, keys, t = carry
         h, logits, z = team.act(actor_params, h, obs, msgs)
-        z_hat = transmit(channel_cfg, step_dither(channel_cfg, keys, t, k), z)[0]
-        msgs = deliver(z_hat)
+        u = channel.step_dither(channel_cfg, keys, t, k)
+        msgs = channel.deliver(channel.transmit(channel_cfg, z, u, keys, t).z_hat)
         return (h, msgs, keys, t + 1), jnp.argmax(logits, -1)
 
     return Expert(init=init, step=step)
 
 
-@dataclasses.dataclass(frozen=True)
-class Imitator:
-    config: ILConfig
-    env: NavigationEnv
-    team: Team
-    expert: Expert
-    init: Callable
-    update: Callable
-    update_chunk: Callable
-    train: Callable
-    evaluate: Callable
-
-
-def load_expert(config: ILConfig, env: NavigationEnv) -> Expert:
-    if config.expert == "oracle":
-        return oracle_expert(env)
-    from sparsecomm.experiment import load_run
-
-    rl_config, trainer, runs, actor = load_run(Path(config.expert_checkpoint))
-    if rl_config.env != config.env:
-        raise ValueError("expert_checkpoint was trained on a different task (env config)")
-    if not 0 <= config.expert_index < len(runs):
-        raise ValueError(f"expert_index must be in [0, {len(runs) - 1}], got {config.expert_index}")
-    params = jax.tree.map(lambda x: x[config.expert_index], actor)
-    return team_expert(trainer.team, rl_config.channel, params)
-
-
-def make_imitate(config: ILConfig, expert: Expert | None = None) -> Imitator:
+def make_imitate(config: ILConfig, expert: Expert | None = None) -> Learner:
+    """The imitation learner of ``config`` imitating ``expert`` (default: the oracle, which
+    ``config.expert = "oracle"`` names; a team expert is loaded by
+    ``sparsecomm.experiment.load_expert``)."""
     env, team = make_team(config)
-    expert = expert if expert is not None else load_expert(config, env)
+    if expert is None:
+        if config.expert != "oracle":
+            raise ValueError(
+                f"ILConfig.expert {config.expert!r} needs the expert itself: "
+                "make_imitate(config, sparsecomm.experiment.load_expert(config))"
+            )
+        expert = oracle_expert(env)
     tx = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.lr))
-
-    def init(key, lam, budget=jnp.nan) -> ILState:
-        """A run's first state; ``budget`` (payload bits per step, NaN: none) overrides lambda."""
-        k_params, k_run = jax.random.split(key)
-        params = team.init(k_params)
-        controller = bit_budget.init(config.budget, budget, lam)
-        return ILState(params, tx.init(params), k_run, jnp.zeros((), jnp.int32), controller)
 
     def beta_at(update):
         if config.beta_decay_updates == 0:
@@ -122,7 +82,8 @@ def make_imitate(config: ILConfig, expert: Expert | None = None) -> Imitator:
         frac = jnp.clip(update / config.beta_decay_updates, 0.0, 1.0)
         return config.beta_start + (config.beta_end - config.beta_start) * frac
 
-    def loss_fn(params, key, lam, beta):
+    def loss_fn(params, key, lam, update):
+        beta = beta_at(update)
         traj = rollout(
             team,
             env,
@@ -135,13 +96,8 @@ def make_imitate(config: ILConfig, expert: Expert | None = None) -> Imitator:
             remat=config.remat,
             keep_hidden=config.budget.decoupled,
         )
-        valid = traj.valid.astype(jnp.float32)
         nll = -jnp.take_along_axis(traj.log_probs, traj.expert_actions[..., None], -1)[..., 0]
-        steps = valid.sum()
-
-        def mean(x):
-            return (x * valid).sum() / steps
-
+        mean = masked_mean(traj.valid)
         imitation_loss = mean(nll.sum(-1))
         loss = imitation_loss + lam * mean(traj.penalty)
         metrics = episode_metrics(traj)
@@ -154,41 +110,14 @@ def make_imitate(config: ILConfig, expert: Expert | None = None) -> Imitator:
         )
         return loss, (metrics, (traj.hidden, traj.valid))
 
-    def update(state: ILState):
-        key, k_roll = jax.random.split(state.key)
-        beta = beta_at(state.update)
-        price = bit_budget.weight(state.budget)
-        in_loss = 0.0 if config.budget.decoupled else price  # else a step of its own, below
-        grads, (metrics, (hidden, valid)) = jax.grad(loss_fn, has_aux=True)(
-            state.params, k_roll, in_loss, beta
-        )
-        updates, opt_state = tx.update(grads, state.opt_state, state.params)
-        params = optax.apply_updates(state.params, updates)
-        params = bit_budget.decoupled_update(
-            config.budget, params, team.message_penalty, hidden, valid, price, config.channel.levels
-        )
-        metrics["grad_norm"] = optax.tree.norm(grads)
-        # The team's own success counts only once beta has reached beta_end (the learners drive
-        # as much as they ever will): before, the expert's actions make the episodes succeed.
-        own_success = jnp.where(beta <= config.beta_end, metrics["success_rate"], 0.0)
-        controller = bit_budget.update(
-            config.budget, state.budget, metrics["bits_per_step"], own_success
-        )
-        metrics.update(bit_budget.log(state.budget, price))
-        return ILState(params, opt_state, key, state.update + 1, controller), metrics
+    def own_success(metrics, update):
+        """The team's own success counts only once beta has reached beta_end (the learners drive
+        as much as they ever will): before, the expert's actions make the episodes succeed."""
+        return jnp.where(beta_at(update) <= config.beta_end, metrics["success_rate"], 0.0)
 
-    def update_chunk(state: ILState, num_updates: int):
-        return jax.lax.scan(lambda s, _: update(s), state, None, length=num_updates)
-
-    def train(key, lam, budget=jnp.nan):
-        return update_chunk(init(key, lam, budget), config.num_updates)
-
-    def evaluate(actor_params, key, num_episodes: int, greedy: bool = False):
-        """Learners drive alone (no expert): the team's own success."""
-        traj = rollout(team, env, config.channel, actor_params, key, num_episodes, greedy=greedy)
-        return episode_metrics(traj)
-
-    return Imitator(config, env, team, expert, init, update, update_chunk, train, evaluate)
+    return make_learner(
+        config, loss_fn, tx, env=env, team=team, success_of=own_success, expert=expert
+    )
 
 
-__all__ = ["ILState", "Imitator", "make_imitate", "oracle_expert", "team_expert"]
+__all__ = ["make_imitate", "oracle_expert", "team_expert"]

@@ -19,36 +19,21 @@ controller from the bits the update's episodes really sent, inside the compiled 
 gradient of the whole expression is taken through the episode: through every agent's GRU and
 through the channel from every receiver's log-probabilities into every sender's parameters.
 
-``make_train(config)`` returns pure functions. ``train(key, lam)`` runs the whole loop as one
-compiled program, so ``vmap`` over seeds and lambdas gives a sweep for free; ``init`` and
-``update_chunk`` split it into resumable pieces for the CLI (checkpoints, progress, logs).
+``make_train(config)`` returns the pure functions of :mod:`sparsecomm.learner` around this loss:
+``train(key, lam, budget)`` runs the whole loop as one compiled program, so ``vmap`` over seeds,
+lambdas and budgets gives a sweep for free; ``init`` and ``update_chunk`` split it into
+resumable pieces (checkpoints, progress, logs).
 """
 
 from __future__ import annotations
 
-import dataclasses
-from collections.abc import Callable
-
 import jax
 import jax.numpy as jnp
 import optax
-from flax import struct
 
-from sparsecomm import budget as bit_budget
-from sparsecomm.agents import Team
 from sparsecomm.configs import RLConfig
-from sparsecomm.envs.navigation import NavigationEnv
+from sparsecomm.learner import Learner, make_learner, make_team, masked_mean
 from sparsecomm.rollout import Trajectory, episode_metrics, rollout
-
-
-class TrainState(struct.PyTreeNode):
-    """Everything a run needs to continue exactly: parameters, optimiser, PRNG, counters."""
-
-    params: dict
-    opt_state: optax.OptState
-    key: jax.Array
-    update: jax.Array  # () int32, updates done
-    budget: bit_budget.BudgetState  # this run's lambda, bit budget and penalty-weight controller
 
 
 def discounted_targets(rewards, values, dones, valid, gamma, gae_lambda):
@@ -97,51 +82,19 @@ def normalize_per_agent(adv, valid, eps: float = 1e-8):
     return (adv - mean) / std * w, std
 
 
-@dataclasses.dataclass(frozen=True)
-class Trainer:
-    """The pure functions of one configuration (see the module docstring)."""
-
-    config: RLConfig
-    env: NavigationEnv
-    team: Team
-    tx: optax.GradientTransformation
-    init: Callable
-    update: Callable
-    update_chunk: Callable
-    train: Callable
-    evaluate: Callable
-
-
-def make_team(config) -> tuple[NavigationEnv, Team]:
-    env = NavigationEnv(config.env)
-    team = Team(
-        config.agent,
-        env.num_agents,
-        env.obs_dim,
-        env.num_actions,
-        config.channel.num_elements,
-        env.state_dim,
+def clip_each_part(max_norm: float) -> optax.GradientTransformation:
+    """Clip the actors' and the critic's gradients by their global norms separately: the
+    critic's squared errors on returns of a few hundred (scaled) units would otherwise dominate
+    one global norm and starve the actors."""
+    clip = optax.clip_by_global_norm(max_norm)
+    return optax.stateless(
+        lambda grads, _: {k: clip.update(g, clip.init(g))[0] for k, g in grads.items()}
     )
-    return env, team
 
 
-def make_train(config: RLConfig) -> Trainer:
+def make_train(config: RLConfig) -> Learner:
     env, team = make_team(config)
-    tx = optax.adam(config.lr)
-    clip = optax.clip_by_global_norm(config.max_grad_norm)
-
-    def clip_parts(grads):
-        """Clip the actors' and the critic's gradients separately: the critic's squared errors
-        on returns of a few hundred (scaled) units would otherwise dominate one global norm and
-        starve the actors."""
-        return {k: clip.update(g, clip.init(g))[0] for k, g in grads.items()}
-
-    def init(key: jax.Array, lam, budget=jnp.nan) -> TrainState:
-        """A run's first state; ``budget`` (payload bits per step, NaN: none) overrides lambda."""
-        k_params, k_run = jax.random.split(key)
-        params = team.init(k_params)
-        controller = bit_budget.init(config.budget, budget, lam)
-        return TrainState(params, tx.init(params), k_run, jnp.zeros((), jnp.int32), controller)
+    tx = optax.chain(clip_each_part(config.max_grad_norm), optax.adam(config.lr))
 
     def loss_fn(params, key, lam, update):
         traj: Trajectory = rollout(
@@ -183,11 +136,7 @@ def make_train(config: RLConfig) -> Trainer:
         entropy = -(jnp.exp(traj.log_probs) * traj.log_probs).sum(-1)
         pg = -(logp * jax.lax.stop_gradient(adv)).sum(-1)
         value_loss = jnp.square(values - jax.lax.stop_gradient(targets)).sum(-1)
-        steps = valid.sum()
-
-        def mean(x):
-            return (x * valid).sum() / steps
-
+        mean = masked_mean(traj.valid)
         loss = (
             mean(pg)
             + config.vf_coef * mean(value_loss)
@@ -204,37 +153,4 @@ def make_train(config: RLConfig) -> Trainer:
         )
         return loss, (metrics, (traj.hidden, traj.valid))
 
-    def update(state: TrainState):
-        key, k_roll = jax.random.split(state.key)
-        price = bit_budget.weight(state.budget)
-        in_loss = 0.0 if config.budget.decoupled else price  # else a step of its own, below
-        grads, (metrics, (hidden, valid)) = jax.grad(loss_fn, has_aux=True)(
-            state.params, k_roll, in_loss, state.update
-        )
-        updates, opt_state = tx.update(clip_parts(grads), state.opt_state, state.params)
-        params = optax.apply_updates(state.params, updates)
-        params = bit_budget.decoupled_update(
-            config.budget, params, team.message_penalty, hidden, valid, price, config.channel.levels
-        )
-        metrics["actor_grad_norm"] = optax.tree.norm(grads["actor"])
-        metrics["critic_grad_norm"] = optax.tree.norm(grads["critic"])
-        controller = bit_budget.update(
-            config.budget, state.budget, metrics["bits_per_step"], metrics["success_rate"]
-        )
-        metrics.update(bit_budget.log(state.budget, price))
-        new = TrainState(params, opt_state, key, state.update + 1, controller)
-        return new, metrics
-
-    def update_chunk(state: TrainState, num_updates: int):
-        """``num_updates`` updates in one ``lax.scan``; metrics stacked on a leading axis."""
-        return jax.lax.scan(lambda s, _: update(s), state, None, length=num_updates)
-
-    def train(key: jax.Array, lam, budget=jnp.nan) -> tuple[TrainState, dict]:
-        """The whole run, pure: vmap it over keys, lambdas and budgets for a sweep."""
-        return update_chunk(init(key, lam, budget), config.num_updates)
-
-    def evaluate(actor_params, key: jax.Array, num_episodes: int, greedy: bool = False):
-        traj = rollout(team, env, config.channel, actor_params, key, num_episodes, greedy=greedy)
-        return episode_metrics(traj)
-
-    return Trainer(config, env, team, tx, init, update, update_chunk, train, evaluate)
+    return make_learner(config, loss_fn, tx, env=env, team=team)

@@ -15,6 +15,7 @@ import csv
 import dataclasses
 import functools
 import math
+import os
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -27,6 +28,7 @@ from tqdm import tqdm
 
 from sparsecomm import checkpoint
 from sparsecomm.configs import to_dict
+from sparsecomm.errors import CheckpointError, DivergedError
 from sparsecomm.sharding import RUNS, is_primary, make_mesh, place_runs, to_host, use_mesh
 
 FIRST_COLUMNS = ["seed", "lam", "budget", "update", "env_steps", "episodes"]
@@ -106,17 +108,27 @@ def _row_metrics(metrics: dict) -> list[str]:
 
 
 def _truncate_csv(path: Path, max_update: int) -> None:
-    """Drop rows logged after the checkpoint we resume from (they will be logged again)."""
+    """Drop rows logged after the checkpoint we resume from (they will be logged again), and a
+    last row cut short by a kill."""
     if not path.exists():
         return
     with open(path, newline="") as f:
         rows = list(csv.reader(f))
-    if not rows:
+    if not rows or "update" not in rows[0]:
+        path.unlink()
         return
-    col = rows[0].index("update")
-    keep = [rows[0]] + [r for r in rows[1:] if int(r[col]) <= max_update]
-    with open(path, "w", newline="") as f:
-        csv.writer(f).writerows(keep)
+    col, width = rows[0].index("update"), len(rows[0])
+
+    def kept(row):
+        try:
+            return len(row) == width and int(row[col]) <= max_update
+        except ValueError:
+            return False
+
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w", newline="") as f:
+        csv.writer(f).writerows([rows[0]] + [r for r in rows[1:] if kept(r)])
+    os.replace(tmp, path)
 
 
 class _Log:
@@ -151,7 +163,13 @@ class _Log:
         if tensorboard:
             from tensorboardX import SummaryWriter
 
-            self.tb = SummaryWriter(str(out / "tensorboard"))
+            # A resumed run redoes the updates after its checkpoint: purge_step makes TensorBoard
+            # drop the earlier events from that step on, so each update shows once.
+            self.tb = SummaryWriter(
+                str(out / "tensorboard"),
+                purge_step=(resume_at + 1) * steps_per_update if resume_at > 0 else None,
+                filename_suffix=f".{resume_at}.{os.getpid()}",
+            )
 
     def write(self, metrics: dict, first_update: int) -> None:
         """Log ``metrics`` ({name: (runs, n)}) of updates ``first_update`` .. + n - 1."""
@@ -177,7 +195,9 @@ class _Log:
                     for k, v in zip(names, values, strict=True):
                         if np.isfinite(v):  # a target not yet set (inf) or none (NaN)
                             self.tb.add_scalar(f"{tag}/seed={run.seed}/{k}", v, env_steps)
-        self.file.flush()
+        self.file.flush()  # on disk before the checkpoint that covers these updates
+        if self.tb is not None:
+            self.tb.flush()
 
     def close(self) -> None:
         for f in (self.file, self.tb):
@@ -217,7 +237,7 @@ def run_sweep(
     on_chunk: Callable | None = None,
     devices=None,
 ):
-    """Run (or resume) a sweep; returns the final batched state and the run list.
+    """Run (or resume) a sweep; returns a :class:`Sweep` (final state, runs, elapsed time).
 
     The runs, and each run's ``episodes_per_update`` episodes, are split over ``devices``
     (default: all local devices; :func:`sparsecomm.sharding.make_mesh`); pass
@@ -242,21 +262,13 @@ def run_sweep(
     }
     ckpt = out / "checkpoint"
     primary = is_primary()  # writes the logs and checkpoints
-    start = 0
-    if resume and checkpoint.exists(ckpt):
+    start, elapsed = 0, 0.0
+    if resume and checkpoint.exists(ckpt):  # a checkpoint that is there is used, or refused
         old = checkpoint.load_meta(ckpt)
-        # The training budget may grow: no learner's update depends on ``num_updates``, so a run
-        # extended from its checkpoint equals one started with the larger budget.
-        if isinstance(old.get("config"), dict):
-            old["config"] = {**old["config"], "num_updates": meta["config"].get("num_updates")}
-        for field in ("kind", "config", "seeds", "lams", "budgets", "chunk"):
-            if old.get(field) != meta[field]:
-                raise ValueError(
-                    f"cannot resume from {ckpt}: its {field} differs from this run's "
-                    f"(use a new --out folder or --no-resume)"
-                )
+        check_resumable(old, meta, ckpt)
         state = place_runs(checkpoint.load(ckpt, state), mesh)
         start = int(to_host(state.update).max())
+        elapsed = float(old.get("elapsed_s", 0.0))
 
     steps_per_update = episodes_per_update * steps_per_episode
     log = _Log(
@@ -281,9 +293,11 @@ def run_sweep(
     while done < num_updates:
         n = min(chunk, num_updates - done)
         with use_mesh(mesh):
-            state, metrics = steps(state, n)
+            new_state, metrics = steps(state, n)
         metrics = to_host(metrics)  # {name: (runs, n)} on every process
         log.write(metrics, done + 1)
+        _stop_if_diverged(metrics, runs, done + 1, ckpt, bar, log)
+        state = new_state
         done += n
         chunks += 1
         last = {k: float(metrics[k][:, -1].mean()) for k in METRIC_ORDER if k in metrics}
@@ -298,9 +312,77 @@ def run_sweep(
             sps=f"{sps:.0f}",
         )
         if chunks % checkpoint_every == 0 or done >= num_updates:
-            checkpoint.save(ckpt, state, meta)
+            checkpoint.save(ckpt, state, {**meta, "elapsed_s": elapsed + time.time() - t0})
         if on_chunk is not None:
             on_chunk(done, state, metrics)
     bar.close()
     log.close()
-    return state, runs
+    return Sweep(state, runs, elapsed + time.time() - t0)
+
+
+RESUME_MAY_CHANGE = ("num_updates",)
+"""Config fields a resume may change: no learner's update depends on ``num_updates``, so a run
+extended from its checkpoint equals one started with the larger budget. Everything about the
+run itself must match; how it is driven (``--chunk``, ``--checkpoint-every``, ``--progress``,
+``--tensorboard``, ``--eval-episodes``) is not part of the checkpoint and may change freely."""
+
+
+def _differences(old, new, path: str = "") -> list[str]:
+    if isinstance(old, dict) and isinstance(new, dict):
+        out = []
+        for k in sorted(set(old) | set(new), key=str):
+            out += _differences(old.get(k), new.get(k), f"{path}.{k}" if path else str(k))
+        return out
+    return [] if old == new else [f"{path} (checkpoint: {old!r}, now: {new!r})"]
+
+
+def check_resumable(old: dict, meta: dict, ckpt: Path) -> None:
+    """Refuse to resume a checkpoint of another run, naming every field that differs."""
+    old_cfg = {k: v for k, v in old.get("config", {}).items() if k not in RESUME_MAY_CHANGE}
+    new_cfg = {k: v for k, v in meta["config"].items() if k not in RESUME_MAY_CHANGE}
+    diffs = _differences(old_cfg, new_cfg, "config")
+    for field in ("kind", "seeds", "lams", "budgets"):
+        diffs += _differences(old.get(field), meta[field], field)
+    if diffs:
+        raise CheckpointError(
+            f"cannot resume from {ckpt}: this run differs in "
+            + "; ".join(diffs)
+            + " (use a new --out folder, or --no-resume to start over)"
+        )
+
+
+def _stop_if_diverged(metrics: dict, runs, first_update: int, ckpt: Path, bar, log) -> None:
+    """Stop the sweep when an update of the chunk had a non-finite loss, gradient or parameter
+    (``nonfinite`` > 0, flagged inside the compiled update): the checkpoint on disk, from before
+    the chunk, stays the last good one."""
+    bad = np.asarray(metrics.get("nonfinite", 0.0)) > 0
+    if not np.any(bad):
+        return
+    bar.close()
+    log.close()
+    u = int(np.argmax(bad.any(axis=0)))  # the chunk's first update with a diverged run
+    r = int(np.argmax(bad[:, u]))
+    run = runs[r]
+    where = f"lambda {run.lam:g}" + ("" if run.budget is None else f", budget {run.budget:g}")
+    count = int(np.any(bad, axis=1).sum())
+    kept = (
+        f"the last good checkpoint {ckpt} is kept"
+        if checkpoint.exists(ckpt)
+        else ("no checkpoint had been saved yet")
+    )
+    raise DivergedError(
+        f"training diverged: run {r} (seed {run.seed}, {where}) had a non-finite loss, gradient "
+        f"or parameter at update {first_update + u} ({count} of {len(runs)} runs diverged "
+        f"in this chunk); {kept}. Lower --config.lr or check the config."
+    )
+
+
+class Sweep(NamedTuple):
+    """What :func:`run_sweep` returns."""
+
+    state: object
+    """The final batched state (a leading run axis)."""
+    runs: list
+    """The sweep's runs, in the order of the run axis."""
+    elapsed_s: float
+    """Wall-clock seconds of training, summed over every resume (compilation included)."""

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from sparsecomm import frontier
+from sparsecomm.stats import curves, read_csv
 
 
 def _results(groups):
@@ -60,8 +61,6 @@ def test_write_makes_json_without_nan_and_a_figure(tmp_path):
 
 
 def test_curves_group_fixed_lambda_runs_once(tmp_path):
-    from sparsecomm.report import curves, read_csv
-
     rows = ["seed,lam,budget,update,env_steps,success_rate"]
     for u in (1, 2, 3):
         for s in (0, 1):

@@ -10,6 +10,7 @@ import pytest
 from sparsecomm.configs import AgentConfig, ChannelConfig, ILConfig
 from sparsecomm.envs.navigation import NavConfig
 from sparsecomm.envs.oracle import oracle_actions
+from sparsecomm.experiment import load_expert, load_run
 from sparsecomm.imitation import make_imitate
 from sparsecomm.rollout import rollout
 
@@ -99,13 +100,13 @@ def test_trained_team_can_be_the_expert(tmp_path, fast_compile):
         )
     )
     cfg = dataclasses.replace(TINY, expert="checkpoint", expert_checkpoint=str(tmp_path / "rl"))
-    im = make_imitate(cfg)
+    with pytest.raises(ValueError, match="needs the expert itself"):
+        make_imitate(cfg)  # imitation does not load run folders: experiment.load_expert does
+    im = make_imitate(cfg, load_expert(cfg))
     state, m = jax.jit(im.train)(jax.random.key(0), 0.0)
     assert np.all(np.isfinite(m["imitation_loss"]))
     # The expert's labels are the trained team's greedy actions (checked on the first step,
     # where the team's memory and messages are zeros).
-    from sparsecomm.experiment import load_run
-
     _, tr, _, rl_actor = load_run(tmp_path / "rl")
     params = jax.tree.map(lambda x: x[0], rl_actor)
     obs, env_state = jax.vmap(im.env.reset)(jax.random.split(jax.random.key(3), 16))

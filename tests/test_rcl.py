@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from sparsecomm.channel import transmit
 from sparsecomm.configs import AgentConfig, ChannelConfig, RLConfig
 from sparsecomm.envs.navigation import NavConfig
-from sparsecomm.reproduce import _fast_compile
+from sparsecomm.reproduce import fast_compile as set_fast_compile
 from sparsecomm.rl import make_train
-from sparsecomm.rollout import rollout, transmit_reinforced
+from sparsecomm.rollout import rollout
 
 RCL = ChannelConfig(mode="reinforced", levels=15, num_elements=4)
 
@@ -23,14 +24,14 @@ RCL = ChannelConfig(mode="reinforced", levels=15, num_elements=4)
 def fast_compile():
     """Compile with most XLA optimisations off: these tiny programs then compile several times
     faster (compilation, not running, dominates this module's time)."""
-    previous = _fast_compile(True)
+    previous = set_fast_compile(True)
     yield
-    _fast_compile(previous)
+    set_fast_compile(previous)
 
 
 def _send(z, seed=0, cfg=RCL):
     keys = jax.random.split(jax.random.key(seed), z.shape[0])
-    return transmit_reinforced(cfg, keys, jnp.asarray(3), z)
+    return transmit(cfg, z, keys=keys, t=jnp.asarray(3))
 
 
 def test_symbols_are_binomial_with_mean_levels_z():

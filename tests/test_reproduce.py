@@ -4,16 +4,10 @@ import json
 
 import pytest
 
-from sparsecomm import report_md
+from sparsecomm import claims
 from sparsecomm.cli import main
-from sparsecomm.reproduce import (
-    BUDGETS,
-    IL_LAMS,
-    PARTS,
-    RL_LAMS,
-    Reproduce,
-    _source_digest,
-)
+from sparsecomm.reproduce import BUDGETS, IL_LAMS, PARTS, RL_LAMS, Reproduce
+from sparsecomm.reproduce.provenance import _source_digest
 
 TINY = [
     "--quick",
@@ -71,7 +65,7 @@ def test_quick_writes_every_artefact(quick_run):
 
 def test_report_decides_every_claim(quick_run):
     text = (quick_run / "report.md").read_text()
-    for n, claim in enumerate(report_md.CLAIMS, 1):
+    for n, claim in enumerate(claims.CLAIMS, 1):
         line = next(ln for ln in text.splitlines() if ln.startswith(f"| {n} | {claim}"))
         assert "**held**" in line or "**not held**" in line, line
     for heading in ("Hardware and wall-clock", "Baselines", "Budgets"):
@@ -150,7 +144,7 @@ def paper_like():
 
 
 def verdicts(summary):
-    return [c.held for c in report_md.decide_claims(summary)]
+    return [c.held for c in claims.decide_claims(summary)]
 
 
 def test_claims_hold_on_paper_like_numbers():

@@ -49,10 +49,10 @@ def test_sweep_sharded_over_devices_and_processes_matches_one_device(tmp_path, f
         assert "sharding_constraint" in lowered and '"episodes"' in lowered
         kw = dict(num_updates=3, episodes_per_update=4, steps_per_episode=8, chunk=3,
                   tensorboard=False, progress=False)
-        sharded, _ = run_sweep(tr, cfg, spec, r"{tmp_path}/a", **kw)
+        sharded = run_sweep(tr, cfg, spec, r"{tmp_path}/a", **kw).state
         devs = {{d for leaf in jax.tree.leaves(sharded.params) for d in leaf.devices()}}
         assert len(devs) == 4, devs
-        single, _ = run_sweep(tr, cfg, spec, r"{tmp_path}/b", devices=[jax.devices()[0]], **kw)
+        single = run_sweep(tr, cfg, spec, r"{tmp_path}/b", devices=[jax.devices()[0]], **kw).state
         for x, y in zip(jax.tree.leaves(sharded.params), jax.tree.leaves(single.params)):
             np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-4, atol=1e-4)
         a = open(r"{tmp_path}/a/metrics.csv").read().splitlines()

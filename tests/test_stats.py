@@ -1,10 +1,10 @@
-"""``report.bootstrap_ci``: coverage of its 95% interval at 10 seeds, and its degenerate cases."""
+"""``sparsecomm.stats.bootstrap_ci``: coverage of its 95% interval at 10 seeds, degenerate cases."""
 
 import numpy as np
 import pytest
 from scipy import stats
 
-from sparsecomm.report import bootstrap_ci, expanded_level, student_t_ci
+from sparsecomm.stats import bootstrap_ci, expanded_level, student_t_ci
 
 TRIALS = 1000
 """Fixed-seed samples in the coverage test (about 5 s on one core with 1000 resamples each)."""

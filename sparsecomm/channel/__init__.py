@@ -9,6 +9,11 @@ Usable on its own in any JAX model::
     bits = channel.payload_bits(m, "paper").sum()          # real bits sent (paper code)
     packet = channel.encode(m, "paper")                    # bytes on the wire
     assert (channel.decode(packet, "paper", m.shape) == m).all()
+
+Between agents (``links``): ``ChannelConfig`` says how a team talks (mode, levels, elements,
+code); ``transmit(cfg, z, u, keys, t)`` sends a batch of links ``(B, K, K-1, C)`` in any mode
+and counts what it cost; ``deliver`` routes the reconstructions to their recipients. This
+package imports nothing else of sparsecomm.
 """
 
 from sparsecomm.channel.codes import (
@@ -23,6 +28,17 @@ from sparsecomm.channel.codes import (
     wire_bits,
 )
 from sparsecomm.channel.gate import GATES, gate, hard_gate
+from sparsecomm.channel.links import (
+    CHANNEL_MODES,
+    ChannelConfig,
+    Sent,
+    deliver,
+    link_dither,
+    link_tables,
+    others,
+    step_dither,
+    transmit,
+)
 from sparsecomm.channel.penalty import bit_penalty
 from sparsecomm.channel.quantizer import (
     dequantize,
@@ -33,22 +49,31 @@ from sparsecomm.channel.quantizer import (
 )
 
 __all__ = [
+    "CHANNEL_MODES",
     "CODE_NAMES",
     "GATES",
+    "ChannelConfig",
     "Code",
+    "Sent",
     "as_code",
     "bit_penalty",
     "decode",
+    "deliver",
     "dequantize",
     "dither",
     "dither_key",
     "encode",
     "gate",
     "hard_gate",
+    "link_dither",
+    "link_tables",
+    "others",
     "packet_bits",
     "paper_length",
     "payload_bits",
     "quantize",
     "quantize_dithered",
+    "step_dither",
+    "transmit",
     "wire_bits",
 ]

@@ -37,12 +37,11 @@ __all__ = [
 ]
 
 
-def check_levels(levels) -> int:
-    """Validate ``levels`` (the paper's |M|): an integer >= 1. Returns it as a Python int."""
-    if isinstance(levels, bool) or not isinstance(levels, (int, np.integer)):
-        raise ValueError(f"levels must be an integer >= 1, got {levels!r}")
-    if levels < 1:
-        raise ValueError(f"levels must be an integer >= 1, got {levels}")
+def check_levels(levels, name: str = "levels") -> int:
+    """Validate ``levels`` (the paper's |M|): an integer >= 1, the one check every part of the
+    channel uses (``name`` is the field named in the error). Returns it as a Python int."""
+    if isinstance(levels, bool) or not isinstance(levels, (int, np.integer)) or levels < 1:
+        raise ValueError(f"{name} must be an integer >= 1, got {levels!r}")
     return int(levels)
 
 

@@ -94,7 +94,14 @@ class EpisodeStats(NamedTuple):
     """float32: sum over agents and steps (until done) of the rewards, unscaled."""
 
 
-def _run_one(key: jax.Array, config: NavConfig, policy_fn: Policy) -> EpisodeStats:
+def scripted_episode(key: jax.Array, config: NavConfig, policy_fn: Policy, keep_states=False):
+    """The one runner of a scripted episode: ``policy_fn(state, config) -> (K,) int32`` plays
+    ``config.max_steps`` steps (steps after ``done`` change nothing and are masked).
+
+    Returns ``(final, alive, group_reward, states)``: the last state, which steps belonged to the
+    episode ``(max_steps,)``, the unscaled reward summed over agents and alive steps, and with
+    ``keep_states`` the state after every step ``(max_steps,...)`` (else ``None``).
+    """
     env = NavigationEnv(config)
     key_reset, key_steps = jax.random.split(key)
     _, state = env.reset(key_reset)
@@ -105,13 +112,20 @@ def _run_one(key: jax.Array, config: NavConfig, policy_fn: Policy) -> EpisodeSta
         actions = policy_fn(state, config)
         _, next_state, rewards, _, _ = env.step(step_key, state, actions)
         total = total + jnp.where(alive, jnp.sum(rewards), 0.0)
-        return (next_state, total), alive
+        return (next_state, total), (alive, next_state if keep_states else None)
 
-    (final, total), alive = jax.lax.scan(
+    (final, total), (alive, states) = jax.lax.scan(
         body,
         (state, jnp.zeros((), jnp.float32)),
         jax.random.split(key_steps, config.max_steps),
     )
+    if keep_states:  # the reset state first
+        states = jax.tree.map(lambda x0, xs: jnp.concatenate([x0[None], xs]), state, states)
+    return final, alive, total, states
+
+
+def _run_one(key: jax.Array, config: NavConfig, policy_fn: Policy) -> EpisodeStats:
+    final, alive, total, _ = scripted_episode(key, config, policy_fn)
     return EpisodeStats(
         success=final.success,
         length=jnp.sum(alive, dtype=jnp.int32),

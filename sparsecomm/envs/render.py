@@ -33,11 +33,11 @@ from pathlib import Path
 from typing import Literal
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
 
-from sparsecomm.envs.navigation import NavConfig, NavigationEnv, NavState
+from sparsecomm.envs.navigation import NavConfig, NavState
+from sparsecomm.envs.oracle import center_actions, oracle_actions, scripted_episode
 
 AGENT_COLOURS = [
     (31, 119, 180),
@@ -614,16 +614,7 @@ def record_episode(key: jax.Array, config: NavConfig, policy_fn) -> tuple[NavSta
     Uses the same keys as episode ``e`` of ``run_policy_episodes`` when given
     ``jax.random.split(key, num_episodes)[e]``.
     """
-    env = NavigationEnv(config)
-    key_reset, key_steps = jax.random.split(key)
-    _, state = env.reset(key_reset)
-
-    def body(state, step_key):
-        _, next_state, _, _, _ = env.step(step_key, state, policy_fn(state, config))
-        return next_state, next_state
-
-    _, states = jax.lax.scan(body, state, jax.random.split(key_steps, config.max_steps))
-    states = jax.tree.map(lambda x0, xs: jnp.concatenate([x0[None], xs]), state, states)
+    states = scripted_episode(key, config, policy_fn, keep_states=True)[3]
     return states, states.done
 
 
@@ -648,8 +639,6 @@ class RenderArgs:
 
 
 def main(args: RenderArgs) -> Path:
-    from sparsecomm.envs.oracle import center_actions, oracle_actions
-
     policy = {"oracle": oracle_actions, "center": center_actions}[args.policy]
     states, dones = record_episode(jax.random.PRNGKey(args.seed), args.env, policy)
     states = trim_episode(states, dones)

@@ -1,4 +1,4 @@
-"""The reproduction report: per-method statistics, the paper's five claims, Table I, report.md.
+"""The paper's claims: per-method statistics, the five claims' rules, Table I, summary.json.
 
 Everything here reads numbers measured by ``sparsecomm reproduce`` (``results.json`` and
 ``metrics.csv`` of each part); nothing is hard-coded. A *summary* maps each method to its
@@ -8,21 +8,22 @@ statistics::
 
 where ``stats[metric] = {"mean", "ci_low", "ci_high", "iqm", "n"}`` is computed over the runs
 (seeds) of that method: the mean with a 95% BCa bootstrap interval at Hesterberg's expanded level
-(:func:`sparsecomm.report.bootstrap_ci`) and the interquartile mean. Lambdas are floats.
+(:func:`sparsecomm.stats.bootstrap_ci`) and the interquartile mean. Lambdas are floats.
 
 The claims (SPEC section 7) are decided by the explicit rules of :func:`decide_claims`, whose
-thresholds are the module constants below.
+thresholds are the module constants below. Read by the report of :mod:`sparsecomm.reproduce` and
+by the budget-matched verdicts of :mod:`sparsecomm.frontier`.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
 from pathlib import Path
 
 import numpy as np
 
-from sparsecomm.report import bootstrap_ci, iqm, read_csv
+from sparsecomm.jsonfile import write_json
+from sparsecomm.stats import bootstrap_ci, iqm, read_csv
 
 METRICS = (
     "success_rate",
@@ -341,4 +342,4 @@ def write_summary(summary: dict, path: Path) -> None:
             return {(f"{k:g}" if isinstance(k, float) else k): keys(v) for k, v in x.items()}
         return x
 
-    path.write_text(json.dumps(keys(summary), indent=2))
+    write_json(path, keys(summary))

@@ -1,0 +1,152 @@
+"""The learner scaffold that RL and imitation share: state, init, update, chunked scan, evaluate.
+
+A learner is its loss. ``make_learner(config, loss_fn, tx)`` wraps
+``loss_fn(params, key, price, update) -> (loss, (metrics, (hidden, valid)))`` (``price``: the
+bit-penalty weight of this update, in lambda's units; ``update``: the 0-based update counter) in
+pure functions, PureJaxRL-style:
+
+- ``init(key, lam, budget=nan) -> LearnerState``: a run's first state; ``budget`` (payload bits
+  per step; NaN: none) hands the price to the controller of :mod:`sparsecomm.budget`;
+- ``update(state) -> (state, metrics)``: one rollout and gradient step, then the controller's
+  step from the bits and the success the update's episodes really had; ``metrics["nonfinite"]``
+  is 1 when the loss, a gradient or a parameter stopped being finite (the sweep then stops);
+- ``update_chunk(state, n)``: ``n`` updates in one ``lax.scan`` (metrics stacked);
+- ``train(key, lam, budget=nan)``: the whole run as one program, so ``vmap`` over seeds,
+  lambdas and budgets is a sweep;
+- ``evaluate(actor_params, key, num_episodes, greedy=False)``: the team alone, no expert.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from sparsecomm import budget as bit_budget
+from sparsecomm.agents import Team
+from sparsecomm.envs.navigation import NavigationEnv
+from sparsecomm.rollout import Expert, episode_metrics, rollout
+
+
+class LearnerState(struct.PyTreeNode):
+    """Everything a run needs to continue exactly: parameters, optimiser, PRNG, counters."""
+
+    params: dict
+    opt_state: optax.OptState
+    key: jax.Array
+    update: jax.Array  # () int32, updates done
+    budget: bit_budget.BudgetState  # this run's lambda, bit budget and penalty-weight controller
+
+
+@dataclasses.dataclass(frozen=True)
+class Learner:
+    """The pure functions of one configuration (see the module docstring)."""
+
+    config: object
+    env: NavigationEnv
+    team: Team
+    tx: optax.GradientTransformation
+    init: Callable
+    update: Callable
+    update_chunk: Callable
+    train: Callable
+    evaluate: Callable
+    loss: Callable
+    """``loss(params, key, price, update) -> (loss, aux)``: the learner's own loss."""
+    expert: Expert | None = None
+
+
+def make_team(config) -> tuple[NavigationEnv, Team]:
+    """The task and the team of a learner's config (``env``, ``agent``, ``channel``)."""
+    env = NavigationEnv(config.env)
+    team = Team(
+        config.agent,
+        env.num_agents,
+        env.obs_dim,
+        env.num_actions,
+        config.channel.num_elements,
+        env.state_dim,
+    )
+    return env, team
+
+
+def make_learner(
+    config,
+    loss_fn: Callable,
+    tx: optax.GradientTransformation,
+    *,
+    env: NavigationEnv,
+    team: Team,
+    success_of: Callable | None = None,
+    expert: Expert | None = None,
+) -> Learner:
+    """Wrap a loss into a learner. ``success_of(metrics, update)`` is the success rate the budget
+    controller sees (default: the batch's ``success_rate``)."""
+    if success_of is None:
+
+        def success_of(metrics, update):
+            return metrics["success_rate"]
+
+    def init(key: jax.Array, lam, budget=jnp.nan) -> LearnerState:
+        """A run's first state; ``budget`` (payload bits per step, NaN: none) overrides lambda."""
+        k_params, k_run = jax.random.split(key)
+        params = team.init(k_params)
+        controller = bit_budget.init(config.budget, budget, lam)
+        return LearnerState(params, tx.init(params), k_run, jnp.zeros((), jnp.int32), controller)
+
+    def update(state: LearnerState):
+        key, k_roll = jax.random.split(state.key)
+        price = bit_budget.weight(state.budget)
+        in_loss = 0.0 if config.budget.decoupled else price  # else a step of its own, below
+        grads, (metrics, (hidden, valid)) = jax.grad(loss_fn, has_aux=True)(
+            state.params, k_roll, in_loss, state.update
+        )
+        updates, opt_state = tx.update(grads, state.opt_state, state.params)
+        params = optax.apply_updates(state.params, updates)
+        params = bit_budget.decoupled_update(
+            config.budget, params, team.message_penalty, hidden, valid, price, config.channel.levels
+        )
+        for part, g in grads.items():
+            metrics[f"{part}_grad_norm"] = optax.tree.norm(g)
+        # Divergence is flagged here, inside the compiled update (no host sync per step); the
+        # sweep stops at the end of the chunk and keeps its last good checkpoint.
+        finite = jnp.isfinite(metrics["loss"])
+        for x in jax.tree.leaves((grads, params)):
+            finite &= jnp.isfinite(x).all()
+        metrics["nonfinite"] = 1.0 - finite.astype(jnp.float32)
+        controller = bit_budget.update(
+            config.budget,
+            state.budget,
+            metrics["bits_per_step"],
+            success_of(metrics, state.update),
+        )
+        metrics.update(bit_budget.log(state.budget, price))
+        return LearnerState(params, opt_state, key, state.update + 1, controller), metrics
+
+    def update_chunk(state: LearnerState, num_updates: int):
+        """``num_updates`` updates in one ``lax.scan``; metrics stacked on a leading axis."""
+        return jax.lax.scan(lambda s, _: update(s), state, None, length=num_updates)
+
+    def train(key: jax.Array, lam, budget=jnp.nan) -> tuple[LearnerState, dict]:
+        """The whole run, pure: vmap it over keys, lambdas and budgets for a sweep."""
+        return update_chunk(init(key, lam, budget), config.num_updates)
+
+    def evaluate(actor_params, key: jax.Array, num_episodes: int, greedy: bool = False):
+        """The team drives alone (no expert): its own success, length and bits."""
+        traj = rollout(team, env, config.channel, actor_params, key, num_episodes, greedy=greedy)
+        return episode_metrics(traj)
+
+    return Learner(
+        config, env, team, tx, init, update, update_chunk, train, evaluate, loss_fn, expert
+    )
+
+
+def masked_mean(valid: jax.Array) -> Callable:
+    """``mean(x)``: the mean of a (T, B) per-step quantity over the valid steps."""
+    valid = valid.astype(jnp.float32)
+    steps = valid.sum()
+    return lambda x: (x * valid).sum() / steps

@@ -1,0 +1,278 @@
+"""Nothing lost, nothing silent (issue 16): bad input refused before any work with the field's
+name and exit code 2, divergence stops a run with exit code 3, checkpoints that cannot lie, and
+logs that hold each update once across kills and resumes."""
+
+import json
+import os
+import signal
+import struct
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from sparsecomm import checkpoint
+from sparsecomm.cli import main
+from sparsecomm.configs import RLConfig
+from sparsecomm.envs.navigation import NavConfig
+from sparsecomm.errors import CheckpointError
+from sparsecomm.experiment import load_run
+from sparsecomm.jsonfile import write_json
+from sparsecomm.rl import make_train
+from sparsecomm.sharding import raw_keys
+from sparsecomm.sweep import SweepSpec, run_sweep
+
+TINY = ["--config.env.max-steps", "8", "--config.num-envs", "4", "--no-progress", "--no-gif"]
+TINY += ["--eval-episodes", "4", "--no-tensorboard"]
+
+
+def _refused(argv, capsys, field):
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = " ".join(capsys.readouterr().err.split())  # tyro's box wraps lines
+    assert e.value.code == 2, err
+    assert field in err and "Traceback" not in err, err
+    return err
+
+
+@pytest.mark.parametrize(
+    "argv, field",
+    [
+        (["train", "--chunk", "0"], "Train.chunk"),
+        (["train", "--chunk", "-1"], "Train.chunk"),
+        (["train", "--checkpoint-every", "0"], "Train.checkpoint_every"),
+        (["train", "--eval-episodes", "-3"], "Train.eval_episodes"),
+        (["train", "--seeds", "0"], "Train.seeds"),
+        (["train", "--lams", "-0.1"], "lams"),
+        (["train", "--budgets", "nan"], "budgets"),
+        (["train", "--budgets", "1e9"], "budgets"),
+        (["imitate", "--chunk", "0"], "Imitate.chunk"),
+        (["eval", "--episodes", "0"], "Eval.episodes"),
+        (["render", "--fps", "0"], "Render.fps"),
+        (["render", "--index", "-1"], "Render.index"),
+        (["train", "--config.lr", "inf"], "RLConfig.lr"),
+        (["train", "--config.lr", "0"], "RLConfig.lr"),
+        (["imitate", "--config.lr", "nan"], "ILConfig.lr"),
+        (["train", "--config.num-envs", "0"], "RLConfig.num_envs"),
+        (["train", "--config.channel.levels", "0"], "ChannelConfig.levels"),
+        (["train", "--config.budget.bits", "-1"], "BudgetConfig.bits"),
+        (["train", "--preset", "nope"], "--preset"),
+    ],
+)
+def test_bad_input_is_refused_before_any_work(argv, field, capsys):
+    _refused(argv, capsys, field)
+
+
+@pytest.mark.parametrize(
+    "flags",
+    [
+        ["--config.agent.hidden", "200000"],
+        ["--config.channel.num-elements", "1000000"],
+        ["--seeds", "100000"],
+    ],
+)
+def test_a_sweep_too_large_for_the_devices_is_refused_with_its_estimate(flags, capsys, tmp_path):
+    err = _refused(["train", *flags, "--out", str(tmp_path / "big")], capsys, "GiB")
+    assert "this sweep needs about" in err and "lower --seeds" in err
+    assert not (tmp_path / "big" / "checkpoint").exists()  # nothing was run
+
+
+def test_index_outside_the_sweep_is_refused(tmp_path, capsys, fast_compile):
+    out = tmp_path / "run"
+    main(["train", *TINY, "--config.num-updates", "1", "--out", str(out)])
+    _refused(["render", "--run", str(out), "--index", "5"], capsys, "Render.index")
+    _refused(
+        ["export", "--run", str(out), "--index", "1", "--out", str(tmp_path / "t")],
+        capsys,
+        "Export.index",
+    )
+    _refused(["eval", "--run", str(tmp_path / "nothing")], capsys, "no run folder")
+
+
+def test_divergence_stops_the_run_names_it_and_keeps_the_last_good_checkpoint(
+    tmp_path, capsys, fast_compile
+):
+    out = tmp_path / "diverged"
+    argv = ["train", *TINY, "--config.num-updates", "6", "--chunk", "1", "--out", str(out)]
+    with pytest.raises(SystemExit) as e:
+        main([*argv, "--config.lr", "1e6", "--seeds", "2"])
+    err = capsys.readouterr().err
+    assert e.value.code == 3, err
+    assert "training diverged: run" in err and "at update" in err and "Traceback" not in err
+    assert not (out / "results.json").exists()  # nothing reported as if it were real
+    if checkpoint.exists(out / "checkpoint"):  # the last good one: every parameter finite
+        _, _, _, actor = load_run(out)
+        assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree.leaves(actor))
+
+
+def test_results_files_never_hold_nan(tmp_path):
+    path = write_json(tmp_path / "r.json", {"a": [1.0, float("nan")], "b": {"c": float("inf")}})
+    text = path.read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    data = json.loads(text)
+    assert data["a"] == [1.0, None] and data["b"]["c"] is None
+    assert set(data["nulls"]) == {"a[1]", "b.c"}
+
+
+CFG = RLConfig(env=NavConfig(max_steps=8), num_envs=4, num_updates=4)
+KW = dict(
+    episodes_per_update=4,
+    steps_per_episode=8,
+    chunk=1,
+    checkpoint_every=1,
+    tensorboard=False,
+    progress=False,
+)
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("ckpt") / "run"
+    sweep = run_sweep(make_train(CFG), CFG, SweepSpec(seeds=2), folder, num_updates=2, **KW)
+    return folder / "checkpoint", sweep.state
+
+
+def _copy(src: Path, dst: Path) -> Path:
+    dst.mkdir(parents=True)
+    for f in src.iterdir():
+        (dst / f.name).write_bytes(f.read_bytes())
+    return dst
+
+
+def test_checkpoint_round_trip_and_every_damage_is_named(saved, tmp_path):
+    ckpt, state = saved
+    back = checkpoint.load(ckpt, state)
+    for x, y in zip(jax.tree.leaves(raw_keys(state)), jax.tree.leaves(raw_keys(back)), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    flipped = _copy(ckpt, tmp_path / "flipped")
+    data = bytearray((flipped / "state.msgpack").read_bytes())
+    data[len(data) // 2] ^= 0x01
+    (flipped / "state.msgpack").write_bytes(bytes(data))
+    with pytest.raises(CheckpointError, match="state.msgpack is damaged"):
+        checkpoint.load(flipped, state)
+    cut = _copy(ckpt, tmp_path / "cut")
+    (cut / "state.msgpack").write_bytes((ckpt / "state.msgpack").read_bytes()[:100])
+    with pytest.raises(CheckpointError, match="state.msgpack is damaged"):
+        checkpoint.load(cut, state)
+    for part in ("state.msgpack", "config.json"):
+        gone = _copy(ckpt, tmp_path / f"no-{part}")
+        (gone / part).unlink()
+        with pytest.raises(CheckpointError, match=f"incomplete: .*{part} is missing"):
+            checkpoint.load(gone, state)
+    bad_json = _copy(ckpt, tmp_path / "json")
+    (bad_json / "config.json").write_text("{not json")
+    with pytest.raises(CheckpointError, match="config.json is damaged"):
+        checkpoint.load(bad_json, state)
+
+
+def test_a_save_killed_between_its_renames_leaves_the_previous_checkpoint(saved, tmp_path):
+    ckpt, state = saved
+    # The moment between "checkpoint -> checkpoint.old" and "checkpoint.new -> checkpoint".
+    _copy(ckpt, tmp_path / "checkpoint.old")
+    (tmp_path / "checkpoint.new").mkdir()
+    assert checkpoint.exists(tmp_path / "checkpoint")
+    back = checkpoint.load(tmp_path / "checkpoint", state)
+    np.testing.assert_array_equal(back.update, state.update)
+    checkpoint.save(tmp_path / "checkpoint", state, {"note": "again"})  # and saving recovers
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint"]
+
+
+def test_resume_refuses_a_damaged_checkpoint_instead_of_starting_over(
+    tmp_path, capsys, fast_compile
+):
+    out = tmp_path / "run"
+    argv = ["train", *TINY, "--config.num-updates", "2", "--chunk", "1", "--out", str(out)]
+    main(argv)
+    (out / "checkpoint" / "state.msgpack").unlink()
+    _refused(
+        [*argv[:-4], "--config.num-updates", "3", "--chunk", "1", "--out", str(out)],
+        capsys,
+        "state.msgpack is missing",
+    )
+    # A resume that changes what the run is names the field, the old and the new value.
+    main(argv + ["--no-resume"])
+    err = _refused([*argv, "--config.gamma", "0.9"], capsys, "config.gamma (checkpoint: 0.95")
+    assert "now: 0.9" in err
+
+
+def test_elapsed_time_adds_up_over_resumes(tmp_path):
+    tr = make_train(CFG)
+    first = run_sweep(tr, CFG, SweepSpec(), tmp_path / "r", num_updates=2, **KW)
+    second = run_sweep(tr, CFG, SweepSpec(), tmp_path / "r", num_updates=4, **KW)
+    meta = checkpoint.load_meta(tmp_path / "r" / "checkpoint")
+    assert second.elapsed_s > first.elapsed_s > 0
+    assert meta["elapsed_s"] == pytest.approx(second.elapsed_s, rel=0.05)
+
+
+def _tb_scalars(folder: Path) -> dict[str, list[int]]:
+    """The steps of every scalar as TensorBoard shows them: event files in order, a session
+    START at step S hiding the earlier events at steps >= S (``purge_step``)."""
+    from tensorboardX.proto import event_pb2
+
+    shown: dict[str, list[int]] = {}
+    for path in sorted(folder.glob("events.out.tfevents.*"), key=lambda p: p.stat().st_mtime):
+        data = path.read_bytes()
+        i = 0
+        while i + 12 <= len(data):
+            (n,) = struct.unpack("<Q", data[i : i + 8])
+            if i + 12 + n + 4 > len(data):  # a record cut short by the kill
+                break
+            event = event_pb2.Event.FromString(data[i + 12 : i + 12 + n])
+            i += 12 + n + 4
+            if event.HasField("session_log") and event.session_log.status == 1:  # START
+                shown = {t: [s for s in v if s < event.step] for t, v in shown.items()}
+            for value in event.summary.value:
+                shown.setdefault(value.tag, []).append(event.step)
+    return shown
+
+
+@pytest.mark.slow
+def test_kill_9_during_a_chunk_then_resume_gives_the_same_run_and_logs(tmp_path):
+    """Multi-process: a training process killed with SIGKILL mid-run, resumed to the end, ends
+    with the parameters of an uninterrupted run, one CSV row and one TensorBoard point per
+    update and run."""
+    args = [
+        "train",
+        "--config.env.max-steps",
+        "8",
+        "--config.num-envs",
+        "4",
+        "--config.num-updates",
+        "40",
+        "--chunk",
+        "1",
+        "--checkpoint-every",
+        "3",
+        "--seeds",
+        "2",
+        "--eval-episodes",
+        "4",
+        "--no-gif",
+        "--no-progress",
+    ]
+    env = {**os.environ, "JAX_PLATFORMS": "cpu"}
+    cmd = [sys.executable, "-m", "sparsecomm.cli", *args]
+    subprocess.run([*cmd, "--out", str(tmp_path / "whole")], check=True, env=env)
+    out = tmp_path / "killed"
+    for kill_after_rows in (9, 31):  # two kills, each mid-run, then a resume to the end
+        proc = subprocess.Popen([*cmd, "--out", str(out)], env=env)
+        csv = out / "metrics.csv"
+        while not csv.exists() or csv.read_text().count("\n") < 1 + 2 * kill_after_rows:
+            assert proc.poll() is None, "finished before it could be killed"
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    subprocess.run([*cmd, "--out", str(out)], check=True, env=env)
+    _, _, _, whole = load_run(tmp_path / "whole")
+    _, _, _, resumed = load_run(out)
+    for x, y in zip(jax.tree.leaves(whole), jax.tree.leaves(resumed), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    rows = (out / "metrics.csv").read_text().splitlines()
+    assert rows == (tmp_path / "whole" / "metrics.csv").read_text().splitlines()
+    assert len(rows) == 1 + 40 * 2
+    shown = _tb_scalars(out / "tensorboard")
+    assert shown and all(sorted(v) == sorted(set(v)) and len(v) == 40 for v in shown.values())
