@@ -1,16 +1,24 @@
 """Hyperparameter probe for RL at lambda = 0: several configurations x seeds, one budget each.
 
 Each configuration runs as one vmapped program over seeds; prints the learning curve (success
-rate, episode length, bits per step; mean over seeds) every ``--every`` env steps. Used to choose
-the RLConfig defaults (see docs/results or the issue notes for the figures).
+rate, episode length, bits per step; mean over seeds) every ``--every`` env steps and appends the
+rows to ``--out`` (JSON lines). With ``--vmap``, configurations that differ only in the numeric
+fields of ``VMAP_FIELDS`` run as one program over (configurations, seeds) (throughput on an
+H100: docs/benchmarks.md). Used to choose the RLConfig defaults: the
+rounds, commands and figures are in docs/tuning.md. The ``GRID`` entries override today's
+``RLConfig()`` defaults, which have changed since those rounds (e.g. shared actor parameters).
 
-    python experiments/tune_rl.py --budget 30e6 --seeds 4 --names base lr1e3 ...
+    python experiments/tune_rl.py --vmap --budget 100e6 --seeds 4 --every 4e6 \
+        --names lr1e3_b256_ent_g95 lr1e3_b256_ent_g90 lr1e3_b256_g90
+
+Seed s of a configuration uses the key of seed s of ``sparsecomm train --config.FIELD VALUE ...
+--seeds N``; to train, evaluate and keep one configuration, use that command.
 """
 
 from __future__ import annotations
 
 import argparse
-import copy
+import dataclasses
 import json
 import time
 
@@ -93,6 +101,15 @@ def seed_keys(seed: int, seeds: int):
     return jnp.stack([jax.random.key(seed + s) for s in range(seeds)])
 
 
+class _TracedConfig(RLConfig):
+    """An RLConfig whose ``VMAP_FIELDS`` may hold traced scalars. RLConfig's checks compare
+    fields with numbers, which tracers cannot answer; they already ran on the concrete
+    configurations (``RLConfig(**GRID[name])``), so this subclass skips them."""
+
+    def __post_init__(self):
+        pass
+
+
 def static_part(cfg: RLConfig) -> RLConfig:
     return RLConfig(
         **{f: getattr(cfg, f) for f in cfg.__dataclass_fields__ if f not in VMAP_FIELDS}
@@ -106,11 +123,10 @@ def run_vmapped(names, budget, seeds, every, out, max_wall):
     assert all(static_part(c) == static_part(base) for c in cfgs), names
     hp = {f: jnp.asarray([float(getattr(c, f)) for c in cfgs], jnp.float32) for f in VMAP_FIELDS}
 
+    traced_base = _TracedConfig(**{f.name: getattr(base, f.name) for f in dataclasses.fields(base)})
+
     def trainer_of(h):
-        cfg = copy.copy(base)
-        for f, v in h.items():
-            object.__setattr__(cfg, f, v)
-        return make_train(cfg)
+        return make_train(dataclasses.replace(traced_base, **h))
 
     steps_per_update = base.num_envs * base.env.max_steps
     n_updates = int(budget // steps_per_update)

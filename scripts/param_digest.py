@@ -53,9 +53,7 @@ def main():
         ),
         "rl separate params, hard gate": (
             make_train,
-            dataclasses.replace(
-                rl, agent=AgentConfig(share_params=False, message_gate="hard")
-            ),
+            dataclasses.replace(rl, agent=AgentConfig(share_params=False, message_gate="hard")),
             0.0,
             float("nan"),
         ),
