@@ -1,4 +1,8 @@
-"""The channel of SPEC sections 1-3: quantizer statistics, gradient, penalty bound, codes."""
+"""The channel of SPEC sections 1-3: quantizer statistics, gradient, penalty bound, codes and
+wire format."""
+
+import math
+import zlib
 
 import jax
 import jax.numpy as jnp
@@ -110,26 +114,122 @@ def test_bit_counts_of_known_symbols():
     m = jnp.arange(16)
     expect = [0, 1, 1, 2, 2, 2, 2, 3, 3, 3, 3, 3, 3, 3, 3, 4]
     np.testing.assert_array_equal(channel.payload_bits(m, "paper"), expect)
-    np.testing.assert_array_equal(channel.wire_bits(m, "paper"), 2 * np.array(expect) + 1)
     np.testing.assert_array_equal(channel.payload_bits(m, "fixed"), 4)
-    np.testing.assert_array_equal(channel.wire_bits(m, channel.Code("float32")), 32)
+    np.testing.assert_array_equal(channel.payload_bits(m, channel.Code("float32")), 32)
     assert channel.Code("fixed", 16).fixed_width == 5 and channel.Code("fixed", 1).fixed_width == 1
-    # jit + vmap friendly, and consistent with the bytes actually produced.
-    batch = jax.random.randint(jax.random.key(0), (4, 6, 10), 0, 16)
-    jitted = jax.jit(jax.vmap(lambda x: channel.wire_bits(x, "paper").sum()))(batch)
-    for row, bits in zip(np.asarray(batch), np.asarray(jitted), strict=True):
-        body = len(channel.encode(row, "paper", crc=False))
-        assert body == -(-int(bits) // 8)
+    # Wire bits of 16 one-element links: symbol 0 sends nothing; otherwise a 1-bit bitmap and
+    # the codeword (paper 2 L bits: 2, 4, 6 or 8; fixed 4 bits), padded to a byte, + CRC-32.
+    one = m[:, None]
+    np.testing.assert_array_equal(channel.wire_bits(one, "paper"), [0] + [8 + 32] * 14 + [16 + 32])
+    np.testing.assert_array_equal(channel.wire_bits(one, "fixed"), [0] + [8 + 32] * 15)
+    np.testing.assert_array_equal(channel.wire_bits(one, "paper", crc=False), [0] + [8] * 14 + [16])
+    # One link of the 16 elements: 16-bit bitmap + 2 * 38 codeword bits = 92 -> 12 bytes + CRC;
+    # float32: 2 bitmap bytes, 15 floats (0.0 is null) of 4 bytes, + CRC.
+    assert int(channel.wire_bits(m, "paper")) == 8 * 12 + 32 == 8 * len(channel.encode(m))
+    assert int(channel.wire_bits(m, "fixed")) == 8 * 10 + 32 == 8 * len(channel.encode(m, "fixed"))
+    floats = m.astype(jnp.float32)
+    assert int(channel.wire_bits(floats, "float32")) == 8 * (2 + 60 + 4)
+    assert 8 * len(channel.encode(floats, "float32")) == 8 * (2 + 60 + 4)
+    # A scalar is a link of one element.
+    assert int(channel.wire_bits(jnp.int32(3), "paper")) == 40 and channel.wire_bits(0) == 0
 
 
 def test_paper_codewords_are_shortlex():
-    # After the Elias-gamma framing (L zeros, a one), the bits are the paper's codeword.
+    # After the presence bit and the length in unary (L - 1 zeros, a one): the paper codeword.
     words = []
     for m in range(1, 8):
         bits = np.unpackbits(np.frombuffer(channel.encode([m], "paper", crc=False), np.uint8))
         length = int(channel.paper_length(m))
+        assert bits[0] == 1 and not bits[1:length].any() and bits[length] == 1
         words.append("".join(map(str, bits[length + 1 : 2 * length + 1])))
     assert words == ["0", "1", "00", "01", "10", "11", "000"]
+
+
+def _links(rng, shape, code: channel.Code, null_share=None):
+    """Random links (last axis C) with a random share of null elements per link; some links all
+    null."""
+    share = rng.random((*shape[:-1], 1)) if null_share is None else null_share
+    present = rng.random(shape) >= share
+    if code.name == "float32":
+        values = rng.standard_normal(shape).astype(np.float32)
+        values[values == 0] = 1.0
+        return np.where(present, values, np.float32(0.0))
+    return np.where(present, rng.integers(1, code.levels + 1, shape), 0)
+
+
+@pytest.mark.parametrize("name", channel.CODE_NAMES)
+@pytest.mark.parametrize("levels", [1, 15, 1000])
+def test_round_trips_are_exact_including_silent_links(name, levels):
+    rng = np.random.default_rng(levels)
+    code = channel.Code(name, levels)
+    links = _links(rng, (400, 10), code)
+    links[:40] = 0  # all-null links
+    links[40:60] = _links(rng, (20, 10), code, null_share=0.0)  # no null element
+    for link in links:
+        packet = channel.encode(link, code)
+        assert (packet == b"") == (not link.any())
+        out = channel.decode(packet, code, link.shape)
+        assert out.shape == link.shape
+        np.testing.assert_array_equal(
+            out.view(np.uint32) if name == "float32" else out,
+            (link.view(np.uint32) if name == "float32" else link),
+        )
+
+
+@pytest.mark.parametrize("name", channel.CODE_NAMES)
+def test_silence_is_free(name):
+    code = channel.Code(name)
+    zeros = np.zeros((3, 10), np.float32 if name == "float32" else np.int64)
+    assert channel.encode(zeros[0], code) == b"" and channel.packet_bits(zeros, code) == 0
+    np.testing.assert_array_equal(channel.wire_bits(zeros, code), [0, 0, 0])
+    np.testing.assert_array_equal(jax.jit(lambda m: channel.wire_bits(m, code))(zeros), 0)
+    out = channel.decode(b"", code, (3, 10))
+    assert out.shape == (3, 10) and out.dtype == zeros.dtype and not out.any()
+    # -0.0 is not the null float: its bits are sent (the round trip is bitwise).
+    if name == "float32":
+        neg = np.array([0.0, -0.0], np.float32)
+        packet = channel.encode(neg, code)
+        assert 8 * len(packet) == int(channel.wire_bits(neg, code)) == 8 * (1 + 4 + 4)
+        np.testing.assert_array_equal(
+            channel.decode(packet, code, (2,)).view(np.uint32), [0, 1 << 31]
+        )
+
+
+@pytest.mark.parametrize("name", channel.CODE_NAMES)
+@pytest.mark.parametrize("crc", [True, False])
+def test_wire_bits_are_the_packet_sizes(name, crc):
+    """jnp (under jit, vmap) against the bytes encode writes, link by link, many nulls."""
+    rng = np.random.default_rng(7)
+    code = channel.Code(name)
+    for c in (1, 7, 8, 10, 17):
+        m = _links(rng, (6, 3, 2, c), code)
+        m[rng.random(m.shape) < 0.5] = 0  # many nulls
+        bits = jax.jit(jax.vmap(lambda x: channel.wire_bits(x, code, crc=crc)))(jnp.asarray(m))
+        assert bits.shape == (6, 3, 2) and bits.dtype == jnp.int32
+        sizes = [
+            [[8 * len(channel.encode(link, code, crc=crc)) for link in r] for r in b] for b in m
+        ]
+        np.testing.assert_array_equal(bits, sizes)
+
+
+@pytest.mark.parametrize("mode", ["discrete", "continuous"])
+def test_transmit_counts_every_links_packet(mode):
+    cfg = channel.ChannelConfig(mode=mode, num_elements=10)
+    b, k = 4, 3
+    z = jax.random.uniform(jax.random.key(0), (b, k, k - 1, 10))
+    z = jnp.where(jax.random.uniform(jax.random.key(1), z.shape) < 0.8, 0.0, z)  # sparse
+    z = z.at[0, 0, 0].set(0.0)  # one silent link
+    keys = jax.random.split(jax.random.key(2), b)
+    u = channel.link_dither(cfg, keys, 1, k)
+    sent = channel.transmit(cfg, z, None if u is None else u[0], keys, 0)
+    if mode == "discrete":
+        m = np.asarray(channel.quantize_dithered(z, u[0], cfg.levels)[0])
+        assert not m[0, 0, 0].any() and (m == 0).mean() > 0.5
+    else:
+        m = np.asarray(z)
+    code = cfg.code_obj
+    expect = [sum(8 * len(channel.encode(link, code)) for link in ep.reshape(-1, 10)) for ep in m]
+    np.testing.assert_array_equal(sent.wire, expect)
 
 
 symbol_arrays = st.integers(1, 1000).flatmap(
@@ -149,6 +249,7 @@ def test_symbols_round_trip_through_bytes(args, name, crc):
     data = channel.encode(m, code, crc=crc)
     np.testing.assert_array_equal(channel.decode(data, code, m.shape, crc=crc), m)
     assert channel.packet_bits(m, code, crc=crc) == 8 * len(data)
+    assert int(channel.wire_bits(m, code, crc=crc)) == 8 * len(data)
 
 
 @settings(max_examples=50, deadline=None)
@@ -172,27 +273,95 @@ def test_round_trip_keeps_shape():
 )
 def test_corrupted_or_truncated_packets_raise(values, name, data):
     m = np.array(values, np.int64)
+    m[data.draw(st.integers(0, m.size - 1))] = data.draw(st.integers(1, 15))  # not silent
     packet = bytearray(channel.encode(m, name))
-    cut = data.draw(st.integers(0, len(packet) - 1))
-    with pytest.raises(ValueError):
+    cut = data.draw(st.integers(1, len(packet) - 1))
+    with pytest.raises(channel.PacketError, match="truncated|corrupted"):
         channel.decode(bytes(packet[:cut]), name, m.shape)
-    with pytest.raises(ValueError):
+    with pytest.raises(channel.PacketError, match="corrupted"):
         channel.decode(bytes(packet) + b"\x00", name, m.shape)
+    with pytest.raises(channel.PacketError):
+        channel.decode(bytes(packet) + bytes(packet), name, m.shape)
+    with pytest.raises(channel.PacketError, match="corrupted"):  # another agreed size
+        channel.decode(bytes(packet), name, (m.size + 1,))
     bit = data.draw(st.integers(0, 8 * len(packet) - 1))
     packet[bit // 8] ^= 1 << (bit % 8)
-    with pytest.raises(ValueError, match="corrupted|truncated|invalid|outside|trailing"):
+    with pytest.raises(channel.PacketError, match="corrupted"):
         channel.decode(bytes(packet), name, m.shape)
 
 
 @settings(max_examples=100, deadline=None)
 @given(st.lists(st.integers(0, 15), min_size=1, max_size=40), st.data())
-def test_truncated_packets_raise_even_without_checksum(values, data):
+def test_truncated_or_extended_packets_raise_even_without_checksum(values, data):
     m = np.array(values, np.int64)
-    for name in ("paper", "fixed"):
+    m[-1] = 15  # not silent; the last byte holds codeword bits
+    for name in ("paper", "fixed", "float32"):
         packet = channel.encode(m, name, crc=False)
-        cut = data.draw(st.integers(0, len(packet) - 1))
-        with pytest.raises(ValueError, match="truncated"):
-            channel.decode(packet[:cut], name, m.shape, crc=False)
+        cut = data.draw(st.integers(1, len(packet) - 1)) if len(packet) > 1 else 0
+        if cut:
+            with pytest.raises(channel.PacketError, match="truncated"):
+                channel.decode(packet[:cut], name, m.shape, crc=False)
+        with pytest.raises(channel.PacketError, match="trailing|too long"):
+            channel.decode(packet + b"\x00", name, m.shape, crc=False)
+
+
+@pytest.mark.parametrize("name", channel.CODE_NAMES)
+@pytest.mark.parametrize(
+    "shape", [(10**12,), (2**31, 2**31), (channel.MAX_ELEMENTS + 1,), (10**6,), "just over"]
+)
+def test_huge_claimed_shape_is_a_clean_error_without_allocating(name, shape):
+    import tracemalloc
+
+    packet = channel.encode(np.arange(10) % 3, name)
+    if shape == "just over":  # one element more than the packet's bits could flag present
+        shape = (8 * len(packet) + 1,)
+    tracemalloc.start()
+    try:
+        for data in (packet, b""):
+            if data == b"" and math.prod(shape) <= channel.MAX_ELEMENTS:
+                continue  # silence: all zeros, of a shape it may allocate
+            with pytest.raises(channel.PacketError, match="claimed shape|corrupted"):
+                channel.decode(data, name, shape)
+            with pytest.raises(channel.PacketError, match="claimed shape"):
+                channel.decode(data, name, shape, crc=False)
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 1 << 20
+
+
+@pytest.mark.parametrize("shape", [(-1,), (2, -3), "ab", 1.5, [[1, 2]], None])
+def test_bad_shapes_raise_packet_error(shape):
+    with pytest.raises(channel.PacketError, match="shape"):
+        channel.decode(b"", "paper", shape)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    st.binary(max_size=48),
+    st.sampled_from(channel.CODE_NAMES),
+    st.integers(1, 300),
+    st.lists(st.integers(0, 12), max_size=3),
+    st.booleans(),
+    st.booleans(),
+)
+def test_decoding_arbitrary_bytes_gives_the_shape_or_packet_error(
+    data, name, levels, shape, crc, checksummed
+):
+    """Any bytes: a result of the claimed shape (that re-encodes to the same bytes: one packet
+    per message) or PacketError, nothing else. ``checksummed`` appends a valid CRC-32 so that
+    the parser behind it is exercised too."""
+    code = channel.Code(name, levels)
+    shape = tuple(shape)
+    if crc and checksummed:
+        count = int(np.prod(shape, dtype=np.int64))
+        data += zlib.crc32(data, zlib.crc32(count.to_bytes(4, "big"))).to_bytes(4, "big")
+    try:
+        out = channel.decode(data, code, shape, crc=crc)
+    except channel.PacketError:
+        return
+    assert out.shape == shape
+    assert channel.encode(out, code, crc=crc) == data
 
 
 @pytest.mark.parametrize("levels", [0, -3, 1.5, True, "15"])
@@ -233,7 +402,7 @@ def test_bad_code_and_symbols():
         channel.encode([0.5], "paper")
     with pytest.raises(ValueError, match=r"m must hold symbols in \[0, 15\]"):
         channel.dequantize(jax.random.key(0), jnp.array([16]), LEVELS)
-    with pytest.raises(ValueError, match="data must be bytes"):
+    with pytest.raises(channel.PacketError, match="data must be bytes"):
         channel.decode("abc", "paper", (1,))
 
 

@@ -7,8 +7,9 @@ Usable on its own in any JAX model::
     m, z_hat = channel.quantize(key, z, levels=15)         # symbols, reconstruction (grad = 1)
     cost = lam * channel.bit_penalty(z, levels=15).sum()   # differentiable bit cost
     bits = channel.payload_bits(m, "paper").sum()          # real bits sent (paper code)
-    packet = channel.encode(m, "paper")                    # bytes on the wire
-    assert (channel.decode(packet, "paper", m.shape) == m).all()
+    wire = channel.wire_bits(m, "paper")                   # packet bits of each link (last axis)
+    packet = channel.encode(m, "paper")                    # one packet, b"" when m is all null
+    assert (channel.decode(packet, "paper", m.shape) == m).all()  # malformed: PacketError
 
 Between agents (``links``): ``ChannelConfig`` says how a team talks (mode, levels, elements,
 code); ``transmit(cfg, z, u, keys, t)`` sends a batch of links ``(B, K, K-1, C)`` in any mode
@@ -18,7 +19,9 @@ package imports nothing else of sparsecomm.
 
 from sparsecomm.channel.codes import (
     CODE_NAMES,
+    MAX_ELEMENTS,
     Code,
+    PacketError,
     as_code,
     decode,
     encode,
@@ -52,8 +55,10 @@ __all__ = [
     "CHANNEL_MODES",
     "CODE_NAMES",
     "GATES",
+    "MAX_ELEMENTS",
     "ChannelConfig",
     "Code",
+    "PacketError",
     "Sent",
     "as_code",
     "bit_penalty",

@@ -1,36 +1,54 @@
 """Codes: how symbols become real bit strings on the wire (SPEC section 2).
 
-Four codes, each with two bit counts per message element:
+Three codes. Payload bits are counted per message element (what the paper counts); wire bits
+per link, as the exact size of the packet :func:`encode` writes for the link's ``C`` elements:
 
-============  =====================================  ==========================================
-code          payload bits (what the paper counts)   wire bits (self-delimiting, on the network)
-============  =====================================  ==========================================
-``paper``     ``L(m) = floor(log2(m + 1))``           ``2 L(m) + 1`` (Elias-gamma of ``m + 1``)
-``fixed``     ``ceil(log2(levels + 1))``              same
-``float32``   32                                      same
-============  =====================================  ==========================================
+============  =====================================  =============================================
+code          payload bits per element               a present (non-null) element in the packet
+============  =====================================  =============================================
+``paper``     ``L(m) = floor(log2(m + 1))``           ``2 L(m)`` bits (unary length, codeword)
+``fixed``     ``ceil(log2(levels + 1))``              ``ceil(log2(levels + 1))`` bits
+``float32``   32                                      32 bits (IEEE big-endian)
+============  =====================================  =============================================
 
 The paper's code maps ``m = 0`` to the null message (nothing sent) and ``m >= 1`` to the binary
 strings in shortlex order: 1 -> "0", 2 -> "1", 3 -> "00", 4 -> "01", ... It is not prefix-free,
-so a packet of several elements needs framing. Elias-gamma of ``m + 1`` is exactly that framing:
-``L(m)`` zeros (the codeword length in unary), a ``1``, then the paper codeword. Its length
-``2 L + 1`` differs from the paper's by an affine map, so the bit penalty stays a valid objective
+so a packet of several elements needs framing: a present element is written as ``L - 1`` zeros
+and a one (its length in unary), then its paper codeword (``L`` bits), together ``2 L`` bits
+(Elias-gamma of ``m + 1`` without its first zero, which the presence bit makes redundant). Its
+length differs from the paper's by an affine map, so the bit penalty stays a valid objective
 (paper, section IV).
 
-A packet (:func:`encode`) is the concatenation of the elements' wire codewords, zero-padded to a
-whole byte, followed by a CRC-16/CCITT of those bytes (2 bytes, on by default) so that a corrupted
-packet raises instead of decoding to wrong symbols. Wire bits per element exclude that per-packet
-padding and checksum; :func:`packet_bits` gives the full packet size.
+Packet of one link (:func:`encode`, docs/channel.md):
+
+* **Silence is free**: a link whose elements are all null (symbol 0; for ``float32``, the bit
+  pattern of +0.0) sends no packet, ``b""``, 0 wire bits.
+* Otherwise: a presence bitmap of ``C`` bits (bit k set when element k is not null), then the
+  present elements' codewords in order, zero-padded to a whole byte (for ``float32`` the bitmap
+  is padded to a byte and the floats follow, 4 bytes each), then a CRC-32 (``zlib.crc32``, 4
+  bytes, big-endian) of the element count ``C`` (4 bytes big-endian: an implicit header, agreed
+  and not sent, so a receiver expecting another shape gets a mismatch) and everything before
+  it. No length field: the decoder knows where the packet must end and rejects any other
+  length. Wire bits: ``8 * ceil((C + codeword bits) / 8) + 32``.
 
 The message shape is agreed a priori (like the paper's C = 10 elements per link), so
-:func:`decode` takes it as an argument. ``payload_bits`` and ``wire_bits`` are ``jnp`` functions,
-usable under ``jit`` and ``vmap``; ``encode`` and ``decode`` are host-side (numpy, bytes).
+:func:`decode` takes it as an argument. The encoding is canonical (one packet per message): a
+decoder rejects trailing bytes, non-zero padding, a non-empty packet with no element present and
+a present element with a null codeword, so a packet that decodes to a wrong message must have
+passed the CRC-32 by chance (probability ~2^-32 for a corrupted packet). Every malformed packet
+raises :class:`PacketError` (a ``ValueError``), and the claimed shape is checked against the
+packet's size before anything is allocated.
+
+``payload_bits`` and ``wire_bits`` are ``jnp`` functions, usable under ``jit`` and ``vmap``;
+``encode`` and ``decode`` are host-side (numpy, bytes).
 """
 
 from __future__ import annotations
 
-import binascii
 import dataclasses
+import math
+import operator
+import zlib
 
 import jax
 import jax.numpy as jnp
@@ -40,7 +58,9 @@ from sparsecomm.channel.quantizer import check_levels
 
 __all__ = [
     "CODE_NAMES",
+    "MAX_ELEMENTS",
     "Code",
+    "PacketError",
     "as_code",
     "paper_length",
     "payload_bits",
@@ -51,7 +71,15 @@ __all__ = [
 ]
 
 CODE_NAMES = ("paper", "fixed", "float32")
-_CRC_BYTES = 2
+CRC_BYTES = 4
+MAX_ELEMENTS = 1 << 24
+"""Most elements one packet may carry (and :func:`decode` may be asked for): 16,777,216. An
+all-null message of any size is the empty packet, so its size cannot bound the claimed shape."""
+
+
+class PacketError(ValueError):
+    """A packet :func:`decode` cannot decode into the agreed shape: truncated, too long,
+    corrupted (CRC-32 mismatch), malformed, or a claimed shape the packet cannot hold."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -59,7 +87,7 @@ class Code:
     """A code for message elements with symbols in ``{0, ..., levels}`` (hashable, jit-static)."""
 
     name: str = "paper"
-    """One of ``CODE_NAMES``: ``paper`` (the paper's variable-length code, Elias-gamma framed on
+    """One of ``CODE_NAMES``: ``paper`` (the paper's variable-length code, length-framed on
     the wire), ``fixed`` (fixed-width binary) or ``float32`` (raw IEEE floats, the unquantized
     baseline)."""
     levels: int = 15
@@ -106,17 +134,37 @@ def payload_bits(m: jax.Array, code: Code | str = "paper") -> jax.Array:
     return jnp.full(m.shape, width, jnp.int32)
 
 
-def wire_bits(m: jax.Array, code: Code | str = "paper") -> jax.Array:
-    """Bits each element takes on the wire with self-delimiting framing, int32, jittable."""
+def wire_bits(m: jax.Array, code: Code | str = "paper", *, crc: bool = True) -> jax.Array:
+    """Bits on the wire of each link: ``8 * len(encode(link, code, crc=crc))``, int32, jittable.
+
+    ``m`` (..., C): the last axis holds one link's elements (a scalar is a link of one element);
+    returns (...). 0 for an all-null link (no packet); else the presence bitmap, the present
+    elements' codewords, the padding to a byte and the CRC-32. Symbols are assumed valid (in
+    [0, levels]; :func:`encode` checks them, this function cannot under ``jit``).
+    """
     code = as_code(code)
-    if code.name == "paper":
-        return 2 * paper_length(m) + 1
-    return payload_bits(m, code)
+    m = jnp.asarray(m)
+    if m.ndim == 0:
+        m = m[None]
+    c = m.shape[-1]
+    if code.name == "float32":
+        words = jax.lax.bitcast_convert_type(m.astype(jnp.float32), jnp.uint32)
+        present = words != 0
+        body = 8 * (-(-c // 8)) + 32 * present.sum(-1, dtype=jnp.int32)
+    else:
+        present = m != 0
+        if code.name == "paper":
+            per_element = 2 * paper_length(m)
+        else:
+            per_element = jnp.where(present, code.fixed_width, 0)
+        body = c + per_element.sum(-1, dtype=jnp.int32)
+    packet = 8 * ((body + 7) // 8) + (8 * CRC_BYTES if crc else 0)
+    return jnp.where(present.any(-1), packet, 0).astype(jnp.int32)
 
 
 def _check_symbols(m: np.ndarray, code: Code) -> np.ndarray:
     if code.name == "float32":
-        return np.asarray(m, np.float32).reshape(-1)
+        return np.ascontiguousarray(np.asarray(m, np.float32).reshape(-1))
     m = np.asarray(m)
     if m.size and not np.issubdtype(m.dtype, np.integer):
         if not np.all(np.isfinite(m)) or np.any(m != np.round(m)):
@@ -140,27 +188,6 @@ def _write_bits(values: np.ndarray, lengths: np.ndarray) -> np.ndarray:
     return bits[pos[None, :] < lengths[:, None]].astype(np.uint8)
 
 
-def encode(m, code: Code | str = "paper", *, crc: bool = True) -> bytes:
-    """Pack message elements into a packet of bytes (see the module docstring for the format).
-
-    ``m``: integer symbols in [0, levels] (any shape, flattened in C order), or floats for
-    ``float32``. Raises ``ValueError`` for symbols out of range.
-    """
-    code = as_code(code)
-    flat = _check_symbols(m, code)
-    if code.name == "float32":
-        body = flat.astype(">f4").tobytes()
-    else:
-        if code.name == "paper":
-            values, lengths = flat + 1, 2 * (_np_bit_length(flat + 1) - 1) + 1
-        else:
-            values, lengths = flat, np.full(flat.shape, code.fixed_width)
-        body = np.packbits(_write_bits(values, lengths)).tobytes()
-    if crc:
-        body += binascii.crc_hqx(body, 0xFFFF).to_bytes(_CRC_BYTES, "big")
-    return body
-
-
 def _np_bit_length(x: np.ndarray) -> np.ndarray:
     out = np.zeros(x.shape, np.int64)
     x = x.copy()
@@ -171,72 +198,158 @@ def _np_bit_length(x: np.ndarray) -> np.ndarray:
     return out
 
 
+def encode(m, code: Code | str = "paper", *, crc: bool = True) -> bytes:
+    """Pack one link's message elements into a packet of bytes (format: module docstring).
+
+    ``m``: integer symbols in [0, levels] (any shape, flattened in C order, at most
+    :data:`MAX_ELEMENTS`), or floats for ``float32``. Returns ``b""`` when every element is
+    null. Raises ``ValueError`` for symbols out of range.
+    """
+    code = as_code(code)
+    flat = _check_symbols(m, code)
+    if flat.size > MAX_ELEMENTS:
+        raise ValueError(f"a packet carries at most {MAX_ELEMENTS} elements, got {flat.size}")
+    if code.name == "float32":
+        present = flat.view(np.uint32) != 0
+        if not present.any():
+            return b""
+        body = np.packbits(present).tobytes() + flat[present].astype(">f4").tobytes()
+    else:
+        present = flat != 0
+        if not present.any():
+            return b""
+        values = flat[present]
+        if code.name == "paper":
+            # L - 1 zeros, a one, the L-bit paper codeword: m + 1 written in 2 L bits.
+            values, lengths = values + 1, 2 * (_np_bit_length(values + 1) - 1)
+        else:
+            lengths = np.full(values.shape, code.fixed_width)
+        bits = np.concatenate([present.astype(np.uint8), _write_bits(values, lengths)])
+        body = np.packbits(bits).tobytes()
+    if crc:
+        body += _crc(flat.size, body)
+    return body
+
+
+def _crc(count: int, body: bytes) -> bytes:
+    """CRC-32 of the element count (4 bytes big-endian, agreed, not sent) and the body."""
+    return zlib.crc32(body, zlib.crc32(count.to_bytes(4, "big"))).to_bytes(CRC_BYTES, "big")
+
+
+def _check_shape(shape) -> tuple[int, ...]:
+    try:
+        dims = (shape,) if isinstance(shape, (int, np.integer)) else tuple(shape)
+        dims = tuple(operator.index(s) for s in dims)
+    except TypeError:
+        raise PacketError(f"shape must be a tuple of integers, got {shape!r}") from None
+    if any(s < 0 for s in dims):
+        raise PacketError(f"shape must have non-negative sizes, got {dims}")
+    return dims
+
+
 def decode(data: bytes, code: Code | str, shape, *, crc: bool = True) -> np.ndarray:
     """Unpack a packet made by :func:`encode` into an array of the agreed ``shape``.
 
-    Returns int64 symbols (float32 values for ``float32``). Raises ``ValueError`` when the packet
-    is truncated, too long, fails its checksum, holds an invalid codeword or symbols outside
-    [0, levels], or has non-zero padding. Runs in time linear in ``len(data)``.
+    Returns int64 symbols (float32 values for ``float32``); ``b""`` decodes to all nulls.
+    Raises :class:`PacketError` when the packet is truncated, too long, fails its checksum,
+    holds an invalid codeword, symbols outside [0, levels], non-zero padding or a non-canonical
+    encoding, or cannot hold ``shape`` (checked before allocating). Time linear in
+    ``len(data)``.
     """
     code = as_code(code)
     if not isinstance(data, (bytes, bytearray, memoryview)):
-        raise ValueError(f"data must be bytes, got {type(data).__name__}")
+        raise PacketError(f"data must be bytes, got {type(data).__name__}")
     data = bytes(data)
-    shape = tuple(int(s) for s in np.atleast_1d(np.asarray(shape, np.int64))) if shape != () else ()
-    if any(s < 0 for s in shape):
-        raise ValueError(f"shape must have non-negative sizes, got {shape}")
-    count = int(np.prod(shape, dtype=np.int64))
+    shape = _check_shape(shape)
+    count = math.prod(shape)
+    dtype = np.float32 if code.name == "float32" else np.int64
+    if count > MAX_ELEMENTS:
+        raise PacketError(f"claimed shape {shape} has {count} elements, over {MAX_ELEMENTS}")
+    if not data:
+        return np.zeros(shape, dtype)
+    body = data
     if crc:
-        if len(data) < _CRC_BYTES:
-            raise ValueError(f"packet truncated: {len(data)} bytes, shorter than its checksum")
-        data, tail = data[:-_CRC_BYTES], data[-_CRC_BYTES:]
-        if binascii.crc_hqx(data, 0xFFFF).to_bytes(_CRC_BYTES, "big") != tail:
-            raise ValueError("packet corrupted: CRC-16 checksum mismatch")
+        if len(data) <= CRC_BYTES:
+            raise PacketError(f"packet truncated: {len(data)} bytes, no room for its CRC-32")
+        body, tail = data[:-CRC_BYTES], data[-CRC_BYTES:]
+        if _crc(count, body) != tail:
+            raise PacketError("packet corrupted: CRC-32 mismatch")
+    if count == 0:
+        raise PacketError(f"a message of no elements is sent as no packet, got {len(data)} bytes")
+    if count > 8 * len(body):
+        raise PacketError(
+            f"packet truncated or claimed shape too large: {shape} needs a {count}-bit "
+            f"presence bitmap, the packet has {8 * len(body)} bits"
+        )
     if code.name == "float32":
-        if len(data) != 4 * count:
-            raise ValueError(
-                f"packet has {len(data)} bytes, expected {4 * count} for {count} floats"
-            )
-        return np.frombuffer(data, ">f4").astype(np.float32).reshape(shape)
-    bits = np.unpackbits(np.frombuffer(data, np.uint8))
-    out = np.zeros(count, np.int64)
-    pos = 0
-    n = bits.size
+        out = _decode_float32(body, count)
+    else:
+        out = _decode_symbols(body, code, count)
+    return out.reshape(shape)
+
+
+def _decode_float32(body: bytes, count: int) -> np.ndarray:
+    nmap = -(-count // 8)
+    bitmap = np.unpackbits(np.frombuffer(body[:nmap], np.uint8))
+    if bitmap[count:].any():
+        raise PacketError("non-zero padding after the presence bitmap")
+    present = bitmap[:count].astype(bool)
+    k = int(np.count_nonzero(present))
+    if k == 0:
+        raise PacketError("packet with no element present (silence is sent as no packet)")
+    if len(body) != nmap + 4 * k:
+        what = "truncated" if len(body) < nmap + 4 * k else "too long"
+        raise PacketError(
+            f"packet {what}: {k} present floats need {nmap + 4 * k} bytes, got {len(body)}"
+        )
+    words = np.frombuffer(body[nmap:], ">u4").astype(np.uint32)
+    if not words.all():
+        raise PacketError("a present element holds +0.0, the null value (invalid codeword)")
+    out = np.zeros(count, np.float32)
+    out[present] = words.view(np.float32)
+    return out
+
+
+def _decode_symbols(body: bytes, code: Code, count: int) -> np.ndarray:
+    nbits = 8 * len(body)
+    bits = format(int.from_bytes(body, "big"), f"0{nbits}b")  # '0'/'1' string, linear time
+    k = bits.count("1", 0, count)
+    if k == 0:
+        raise PacketError("packet with no element present (silence is sent as no packet)")
+    pos = count
     if code.name == "fixed":
         w = code.fixed_width
-        need = w * count
-        if need > n:
-            raise ValueError(f"packet truncated: {count} elements need {need} bits, got {n}")
-        if count:
-            weights = 1 << np.arange(w - 1, -1, -1)
-            out = bits[:need].reshape(count, w).astype(np.int64) @ weights
-        pos = need
+        end = pos + w * k
+        if end > nbits:
+            raise PacketError(f"packet truncated: {k} present elements need {end} bits of {nbits}")
+        digits = np.frombuffer(bits[pos:end].encode(), np.uint8).reshape(k, w) - ord("0")
+        values = digits.astype(np.int64) @ (1 << np.arange(w - 1, -1, -1, dtype=np.int64))
+        pos = end
+        if values.min() == 0:
+            raise PacketError("a present element holds the null symbol 0 (invalid codeword)")
     else:
-        max_zeros = code.max_paper_length
-        for k in range(count):
-            zeros = 0
-            while pos < n and bits[pos] == 0 and zeros <= max_zeros:
-                zeros += 1
-                pos += 1
-            if zeros > max_zeros:
-                raise ValueError(
-                    f"invalid codeword at element {k}: length prefix exceeds {max_zeros} bits"
-                )
-            if pos + zeros >= n:
-                raise ValueError(f"packet truncated inside element {k} of {count}")
-            value = 0
-            for b in bits[pos : pos + zeros + 1]:
-                value = (value << 1) | int(b)
-            pos += zeros + 1
-            out[k] = value - 1
-    if count and out.max() > code.levels:
-        raise ValueError(f"decoded symbol {out.max()} outside [0, {code.levels}]")
-    rest = bits[pos:]
-    if rest.size >= 8 or np.any(rest):
-        raise ValueError(
-            f"packet has {rest.size} trailing bits after {count} elements (not padding)"
+        max_len = code.max_paper_length
+        values = np.empty(k, np.int64)
+        for i in range(k):
+            one = bits.find("1", pos, min(pos + max_len, nbits))
+            if one < 0:
+                if pos + max_len > nbits:
+                    raise PacketError(f"packet truncated inside present element {i} of {k}")
+                raise PacketError(f"invalid codeword: length prefix exceeds {max_len} bits")
+            length = one - pos + 1
+            pos = one + 1 + length
+            if pos > nbits:
+                raise PacketError(f"packet truncated inside present element {i} of {k}")
+            values[i] = int(bits[one:pos], 2) - 1
+    if values.max() > code.levels:
+        raise PacketError(f"decoded symbol {values.max()} outside [0, {code.levels}]")
+    if nbits - pos >= 8 or "1" in bits[pos:]:
+        raise PacketError(
+            f"packet has {nbits - pos} trailing bits after {k} present elements (not padding)"
         )
-    return out.reshape(shape)
+    out = np.zeros(count, np.int64)
+    out[np.frombuffer(bits[:count].encode(), np.uint8) == ord("1")] = values
+    return out
 
 
 def packet_bits(m, code: Code | str = "paper", *, crc: bool = True) -> int:

@@ -138,7 +138,7 @@ class Sent(NamedTuple):
     z_hat: jax.Array  # (B, K, K-1, C) the reconstructions the recipients decode
     penalty: jax.Array  # (B,) the differentiable bit penalty, summed over links and elements
     payload: jax.Array  # (B,) payload bits sent by the team (the paper's count)
-    wire: jax.Array  # (B,) bits on the wire, framing included
+    wire: jax.Array  # (B,) bits on the wire: every link's packet, framing and CRC included
     link: jax.Array  # (B, K, K-1) payload bits of each link, by sender and slot
     log_prob: jax.Array  # (B, K) log-prob of each sender's symbols ("reinforced"; else 0)
 
@@ -159,7 +159,8 @@ def transmit(cfg: ChannelConfig, z: jax.Array, u=None, keys=None, t=None) -> Sen
     if cfg.mode == "continuous":
         link = jnp.full((b, k, r), 32.0 * c)
         total = jnp.full((b,), 32.0 * c * k * r)
-        return Sent(z, zeros_b, total, total, link, no_log_prob)
+        wire = wire_bits(z, cfg.code_obj).sum((-2, -1)).astype(jnp.float32)
+        return Sent(z, zeros_b, total, wire, link, no_log_prob)
     if cfg.mode == "reinforced":
         if keys is None or t is None:
             raise ValueError("ChannelConfig.mode 'reinforced' needs the episodes' keys and t")
@@ -171,7 +172,7 @@ def transmit(cfg: ChannelConfig, z: jax.Array, u=None, keys=None, t=None) -> Sen
         log_prob = no_log_prob
     code = cfg.code_obj
     link = payload_bits(m, code).sum(-1).astype(jnp.float32)
-    wire = wire_bits(m, code).sum((-3, -2, -1)).astype(jnp.float32)
+    wire = wire_bits(m, code).sum((-2, -1)).astype(jnp.float32)  # (B, K, K-1) packets -> (B,)
     penalty = bit_penalty(z, cfg.levels).sum((-3, -2, -1))
     return Sent(z_hat, penalty, link.sum((-2, -1)), wire, link, log_prob)
 
