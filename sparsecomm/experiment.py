@@ -80,7 +80,7 @@ class Train:
 
     def __post_init__(self):
         _at_least(self, seeds=1, chunk=1, checkpoint_every=1, eval_episodes=1)
-        SweepSpec(self.seeds, tuple(self.lams), tuple(self.budgets) or (None,))  # lams, budgets
+        SweepSpec(self.seeds, tuple(self.lams), tuple(self.budgets or ()) or (None,))
         check_budget_fits(self.config, self.budgets or None, "budgets")
 
 

@@ -206,7 +206,7 @@ class _Log:
 
 
 @functools.lru_cache(maxsize=16)
-def _compiled(learner, sharded: bool):
+def compiled(learner, sharded: bool):
     """The learner's vmapped, jitted ``init`` and ``update_chunk`` (compiled once per learner).
 
     ``sharded``: the run axis is the mesh's ``runs`` axis (for the rollout's episode split).
@@ -248,7 +248,7 @@ def run_sweep(
     runs = spec.runs()
     keys, lams, budgets = run_arrays(config, runs)
     mesh = make_mesh(len(runs), episodes_per_update, devices)
-    init, steps = _compiled(learner, mesh is not None)
+    init, steps = compiled(learner, mesh is not None)
     with use_mesh(mesh):
         state = init(*place_runs((keys, lams, budgets), mesh))
     meta = {
@@ -288,6 +288,11 @@ def run_sweep(
         desc=f"{kind} {len(runs)} run(s)",
         dynamic_ncols=True,
     )
+    if progress and primary and start < num_updates:
+        tqdm.write(
+            f"{kind}: {len(runs)} run(s) from update {start}; compiling the first chunk "
+            "(this can take a minute) ..."
+        )
     t0 = time.time()
     done, chunks = start, 0
     while done < num_updates:

@@ -94,6 +94,7 @@ FAST = BudgetConfig(engage_success=0.0, halving_updates=1.0, dual_lr=0.5, weight
 TINY_RL = RLConfig(env=NavConfig(max_steps=16), num_envs=8, num_updates=40, budget=FAST)
 
 
+@pytest.mark.slow
 def test_tiny_rl_run_moves_its_bits_toward_the_budget(fast_compile):
     tr = make_train(TINY_RL)
     keys = jnp.stack([jax.random.key(0)] * 2)
@@ -107,6 +108,7 @@ def test_tiny_rl_run_moves_its_bits_toward_the_budget(fast_compile):
     assert np.isnan(target[0]).all() and target[1, -1] == pytest.approx(8.0)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("gate, recovers", [("hard", True), ("sigmoid", False)])
 def test_silenced_channel_recovers_when_the_budget_is_raised(gate, recovers, fast_compile):
     # Imitation of the oracle: the learners need each other's messages to predict its actions.
@@ -197,6 +199,7 @@ def test_decoupled_penalty_moves_only_the_message_head_by_its_own_gradient(fast_
     assert max(jax.tree.leaves(moved["actor"]["params"]["Dense_0"])) > 0  # reaches the trunk
 
 
+@pytest.mark.slow
 def test_tiny_rl_run_with_decoupled_penalty_meets_its_budget(fast_compile):
     fast = dataclasses.replace(FAST, decoupled=True, dual_lr=0.5)
     tr = make_train(dataclasses.replace(TINY_RL, budget=fast))

@@ -5,6 +5,7 @@ import json
 import imageio.v3 as iio
 import jax
 import numpy as np
+import pytest
 
 from sparsecomm.cli import main
 from sparsecomm.experiment import load_run
@@ -65,6 +66,7 @@ def test_imitate_writes_imitation_loss(tmp_path, fast_compile):
     assert json.loads((out / "results.json").read_text())["runs"][0]["lam"] == 0.0
 
 
+@pytest.mark.slow
 def test_budget_sweep_export_and_the_shipped_team(tmp_path, fast_compile, monkeypatch):
     out = tmp_path / "budgets"
     main(["train", *TINY, "--budgets", "None", "8", "--no-gif", "--out", str(out)])

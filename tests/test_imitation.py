@@ -83,6 +83,7 @@ def test_learners_get_gradient_only_through_messages_from_others(fast_compile):
     assert sum(float(jnp.abs(x[1]).sum()) for x in jax.tree.leaves(g)) == 0
 
 
+@pytest.mark.slow
 def test_trained_team_can_be_the_expert(tmp_path, fast_compile):
     from sparsecomm.configs import RLConfig
     from sparsecomm.experiment import Train, train
@@ -118,6 +119,7 @@ def test_trained_team_can_be_the_expert(tmp_path, fast_compile):
         ILConfig(expert="checkpoint")
 
 
+@pytest.mark.slow
 def test_short_imitation_lowers_loss_and_raises_success():
     """CI learning test: 140 DAgger updates of 32 episodes from the oracle, on CPU."""
     cfg = ILConfig(num_envs=32, beta_decay_updates=60)

@@ -101,6 +101,7 @@ def test_other_modes_record_zero_message_log_probs():
     assert t.msg_log_probs.shape == (4, 2, 3) and float(jnp.abs(t.msg_log_probs).sum()) == 0.0
 
 
+@pytest.mark.slow
 def test_bit_cost_lowers_bits():
     """Same seed and budget; a per-bit cost makes the senders send fewer bits. gamma = 0 credits
     each step's symbols with that step's cost only (the cleanest signal for a short test)."""

@@ -7,7 +7,7 @@ import pytest
 from sparsecomm import claims
 from sparsecomm.cli import main
 from sparsecomm.reproduce import BUDGETS, IL_LAMS, PARTS, RL_LAMS, Reproduce
-from sparsecomm.reproduce.provenance import _source_digest
+from sparsecomm.reproduce.provenance import source_digest
 
 TINY = [
     "--quick",
@@ -38,6 +38,7 @@ def quick_run(tmp_path_factory):
     return out
 
 
+@pytest.mark.slow
 def test_quick_writes_every_artefact(quick_run):
     out = quick_run
     for name in (
@@ -60,9 +61,10 @@ def test_quick_writes_every_artefact(quick_run):
     assert set(PARTS) <= set(timings)
     assert timings["rl"]["budget"]["env_steps_per_run"] == 2 * 2 * 12
     assert timings["rl"]["hardware"]["cpu_cores"] >= 1
-    assert timings["rl"]["source_sha256"] == _source_digest() and len(_source_digest()) == 16
+    assert timings["rl"]["source_sha256"] == source_digest() and len(source_digest()) == 16
 
 
+@pytest.mark.slow
 def test_report_decides_every_claim(quick_run):
     text = (quick_run / "report.md").read_text()
     for n, claim in enumerate(claims.CLAIMS, 1):
@@ -76,6 +78,7 @@ def test_report_decides_every_claim(quick_run):
     assert "**held**" in extra or "**not held**" in extra, extra
 
 
+@pytest.mark.slow
 def test_table1_has_every_lambda(quick_run):
     table = (quick_run / "table1.md").read_text()
     rows = [ln.split("|")[1].strip() for ln in table.splitlines() if ln.startswith("| ")][1:]
@@ -232,6 +235,7 @@ def test_extra_rcl_check_and_missing_parts():
     assert verdicts({"rl": paper_like()["rl"]}) == [None, None, True, True, None, None]
 
 
+@pytest.mark.slow
 def test_budget_parts_write_the_frontier(quick_run):
     rows = json.loads((quick_run / "budget_summary.json").read_text())
     keys = {"learner", "budget", "lam", "seeds", "success", "payload_bits", "wire_bits"}

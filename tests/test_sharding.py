@@ -20,6 +20,7 @@ from sparsecomm.experiment import evaluate_runs, load_run
 FAST = {"JAX_DISABLE_MOST_OPTIMIZATIONS": "true"}
 
 
+@pytest.mark.slow
 def test_sweep_sharded_over_devices_and_processes_matches_one_device(tmp_path, fast_compile):
     # 2 runs x 4 episodes on 4 devices: a (runs 2, episodes 2) mesh, so both axes are split.
     # The episode split changes the order of the gradient sums, and Adam's normalised steps
@@ -31,7 +32,7 @@ def test_sweep_sharded_over_devices_and_processes_matches_one_device(tmp_path, f
         from sparsecomm.envs.navigation import NavConfig
         from sparsecomm.rl import make_train
         from sparsecomm.sharding import make_mesh, place_runs, use_mesh
-        from sparsecomm.sweep import SweepSpec, _compiled, run_sweep
+        from sparsecomm.sweep import SweepSpec, compiled, run_sweep
 
         assert len(jax.devices()) == 4, jax.devices()
         cfg = RLConfig(env=NavConfig(max_steps=8), num_envs=4)
@@ -41,7 +42,7 @@ def test_sweep_sharded_over_devices_and_processes_matches_one_device(tmp_path, f
         assert dict(mesh.shape) == {{"runs": 2, "episodes": 2}}, mesh.shape
         # The rollout constrains its episode axis to the mesh's episodes axis (XLA then sums
         # each run's gradient over its two episode shards; the equality below checks that sum).
-        init, steps = _compiled(tr, True)
+        init, steps = compiled(tr, True)
         keys = jax.numpy.stack([jax.random.key(0), jax.random.key(1)])
         with use_mesh(mesh):
             state = init(*place_runs((keys, jax.numpy.zeros(2)), mesh))

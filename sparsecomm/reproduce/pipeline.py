@@ -14,8 +14,8 @@ import jax
 from sparsecomm import claims
 from sparsecomm.jsonfile import write_json
 from sparsecomm.reproduce.plan import PARTS, Reproduce
-from sparsecomm.reproduce.provenance import _git_commit, _source_digest, hardware
-from sparsecomm.reproduce.report import _read, write_report
+from sparsecomm.reproduce.provenance import git_commit, hardware, source_digest
+from sparsecomm.reproduce.report import read_json, write_report
 from sparsecomm.reproduce.runs import fast_compile, run_part
 from sparsecomm.sharding import is_primary
 
@@ -27,7 +27,7 @@ def reproduce(args: Reproduce) -> dict:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     timings_path = out / "timings.json"
-    timings = _read(timings_path) or {}
+    timings = read_json(timings_path) or {}
     timings["_meta"] = {"quick": args.quick}
     fast = bool(args.resolved("fast_compile"))
     previous = fast_compile(True) if fast else None
@@ -41,8 +41,8 @@ def reproduce(args: Reproduce) -> dict:
                 "budget": budget,
                 "hardware": hardware(),
                 "fast_compile": fast,
-                "commit": _git_commit(),
-                "source_sha256": _source_digest(),
+                "commit": git_commit(),
+                "source_sha256": source_digest(),
                 "finished": datetime.datetime.now().isoformat(timespec="seconds"),
                 "processes": jax.process_count(),
             }

@@ -40,7 +40,7 @@ def hardware() -> dict:
     }
 
 
-def _source_digest() -> str:
+def source_digest() -> str:
     """SHA-256 (first 16 hex digits) of the package's Python sources, in path order: names the
     code that ran even where the git metadata is missing or stale."""
     h = hashlib.sha256()
@@ -49,7 +49,7 @@ def _source_digest() -> str:
     return h.hexdigest()[:16]
 
 
-def _git_commit() -> str | None:
+def git_commit() -> str | None:
     """The short commit of the code, with ``+changes`` if tracked files differ from it."""
 
     def git(*args: str) -> str:

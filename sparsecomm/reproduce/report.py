@@ -15,11 +15,11 @@ from pathlib import Path
 
 from sparsecomm import claims, frontier
 from sparsecomm.reproduce.plan import BASELINE_LABELS, PARTS
-from sparsecomm.reproduce.provenance import _git_commit
+from sparsecomm.reproduce.provenance import git_commit
 from sparsecomm.stats import plot_curves, plot_pareto
 
 
-def _read(path: Path) -> dict | None:
+def read_json(path: Path) -> dict | None:
     return json.loads(path.read_text()) if path.exists() else None
 
 
@@ -27,7 +27,7 @@ def collect(out: Path) -> dict:
     """The summary (see :mod:`sparsecomm.report_md`) of every part found under ``out``."""
     summary: dict = {}
     for part in ("rl", "imitation"):
-        res = _read(out / part / "results.json")
+        res = read_json(out / part / "results.json")
         if res is not None:
             summary[part] = claims.summarize_runs(res["runs"])
     baselines = {}
@@ -40,7 +40,7 @@ def collect(out: Path) -> dict:
         "centre": "oracle/centre.json",
     }
     for name, rel in files.items():
-        res = _read(out / rel)
+        res = read_json(out / rel)
         if res is not None:
             baselines[name] = next(iter(claims.summarize_runs(res["runs"]).values()))
     if baselines:
@@ -53,7 +53,7 @@ def collect(out: Path) -> dict:
     if auc:
         summary["training_success"] = auc
     sources = {
-        learner: [doc for doc in (_read(out / p / "results.json") for p in parts) if doc]
+        learner: [doc for doc in (read_json(out / p / "results.json") for p in parts) if doc]
         for learner, parts in (
             ("rl", ("rl", "rl_budget")),
             ("imitation", ("imitation", "il_budget")),
@@ -211,7 +211,7 @@ def write_report(out: Path, command: str = "") -> dict:
     figures = write_figures(out, summary)
     if "imitation" in summary:
         (out / "table1.md").write_text(claims.table1(summary["imitation"]))
-    timings = _read(out / "timings.json") or {}
+    timings = read_json(out / "timings.json") or {}
     verdicts = claims.decide_claims(summary)
     md = ["# Reproduction of Freed et al. (IROS 2020): report", ""]
     md += [
@@ -225,7 +225,7 @@ def write_report(out: Path, command: str = "") -> dict:
     ]
     if command:
         md += [f"Invoked as: `{command}`", ""]
-    commit = _git_commit()
+    commit = git_commit()
     if commit:
         md += [f"Report written at commit `{commit}` (each part's: hardware table).", ""]
     quick = timings.get("_meta", {}).get("quick")
