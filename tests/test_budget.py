@@ -181,6 +181,7 @@ def test_message_penalty_of_the_head_matches_the_rollout(share, fast_compile):
     np.testing.assert_allclose(again, traj.penalty, rtol=1e-5)
 
 
+@pytest.mark.slow
 def test_decoupled_penalty_moves_only_the_message_head_by_its_own_gradient(fast_compile):
     cfg = dataclasses.replace(TINY_RL, budget=dataclasses.replace(FAST, decoupled=True))
     tr = make_train(cfg)

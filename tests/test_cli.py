@@ -58,6 +58,7 @@ def test_train_eval_render(tmp_path, fast_compile):
     assert frames.ndim == 4 and 2 <= frames.shape[0] <= 13
 
 
+@pytest.mark.slow
 def test_imitate_writes_imitation_loss(tmp_path, fast_compile):
     out = tmp_path / "im"
     main(["imitate", *TINY, "--no-gif", "--no-tensorboard", "--out", str(out)])

@@ -199,6 +199,7 @@ def test_resume_refuses_a_damaged_checkpoint_instead_of_starting_over(
     assert "now: 0.9" in err
 
 
+@pytest.mark.slow
 def test_elapsed_time_adds_up_over_resumes(tmp_path):
     tr = make_train(CFG)
     first = run_sweep(tr, CFG, SweepSpec(), tmp_path / "r", num_updates=2, **KW)
