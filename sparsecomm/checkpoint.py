@@ -1,7 +1,8 @@
 """Checkpoints that cannot lie: msgpack for arrays (``flax.serialization``), JSON for configs.
 
 A checkpoint folder holds ``state.msgpack`` (the batched train state of every run of a sweep)
-and ``config.json`` (the configuration, the sweep axes, and the SHA-256 of ``state.msgpack``).
+and ``config.json`` (the configuration, the sweep axes, the SHA-256 of ``state.msgpack``, and
+the SHA-256 of ``config.json``'s own other fields).
 Loading executes no code from the files.
 
 A save writes a whole new folder beside the old one (``<name>.new``: both files, each fsynced),
@@ -60,6 +61,7 @@ def save(folder: str | os.PathLike, state, meta: dict) -> None:
     data = serialization.to_bytes(raw)
     _write(new / STATE, data)
     meta = {**meta, "state_sha256": hashlib.sha256(data).hexdigest()}
+    meta["meta_sha256"] = _meta_digest(meta)
     _write(new / META, json.dumps(meta, indent=2).encode())
     _sync_dir(new)
     if folder.exists():
@@ -68,6 +70,12 @@ def save(folder: str | os.PathLike, state, meta: dict) -> None:
     os.replace(new, folder)
     _sync_dir(folder.parent)
     shutil.rmtree(old, ignore_errors=True)
+
+
+def _meta_digest(meta: dict) -> str:
+    """SHA-256 of the metadata itself (every field but this digest, keys sorted)."""
+    rest = {k: v for k, v in meta.items() if k != "meta_sha256"}
+    return hashlib.sha256(json.dumps(rest, sort_keys=True).encode()).hexdigest()
 
 
 def _current(folder: str | os.PathLike) -> Path:
@@ -94,10 +102,15 @@ def load_meta(folder: str | os.PathLike) -> dict:
         meta = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise CheckpointError(f"checkpoint file {path} is damaged (not valid JSON: {e})") from None
-    if not isinstance(meta, dict) or "state_sha256" not in meta:
+    if not isinstance(meta, dict) or "state_sha256" not in meta or "meta_sha256" not in meta:
         raise CheckpointError(
-            f"checkpoint file {path} has no state_sha256 (damaged, or written by an older "
-            "sparsecomm that did not record digests)"
+            f"checkpoint file {path} has no digests (damaged, or written by an older "
+            "sparsecomm that did not record them)"
+        )
+    if _meta_digest(meta) != meta["meta_sha256"]:
+        raise CheckpointError(
+            f"checkpoint file {path} is damaged: its SHA-256 differs from the one recorded when "
+            "it was saved"
         )
     return meta
 

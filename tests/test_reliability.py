@@ -167,6 +167,12 @@ def test_checkpoint_round_trip_and_every_damage_is_named(saved, tmp_path):
     (bad_json / "config.json").write_text("{not json")
     with pytest.raises(CheckpointError, match="config.json is damaged"):
         checkpoint.load(bad_json, state)
+    edited = _copy(ckpt, tmp_path / "edited")  # valid JSON, one value changed
+    text = (edited / "config.json").read_text()
+    (edited / "config.json").write_text(text.replace('"seeds": 2', '"seeds": 3'))
+    assert (edited / "config.json").read_text() != text
+    with pytest.raises(CheckpointError, match="config.json is damaged"):
+        checkpoint.load(edited, state)
 
 
 def test_a_save_killed_between_its_renames_leaves_the_previous_checkpoint(saved, tmp_path):
