@@ -191,7 +191,7 @@ def load_expert(config: ILConfig) -> Expert:
     return team_expert(trainer.team, rl_config.channel, params)
 
 
-def make_learner(config: RLConfig | ILConfig):
+def learner_for(config: RLConfig | ILConfig):
     """The learner of a config: RL, or imitation of the expert the config names."""
     if isinstance(config, ILConfig):
         return make_imitate(config, load_expert(config))
@@ -205,7 +205,7 @@ def _learner(kind: str, config_dict: dict, where: Path):
     if kind not in KINDS:
         raise ValueError(f"{where} holds a {kind!r} run, not one of {list(KINDS)}")
     config = from_dict(KINDS[kind], config_dict)
-    return config, make_learner(config)
+    return config, learner_for(config)
 
 
 def load_run(folder: Path):
@@ -300,7 +300,7 @@ def train(args: Train) -> dict:
     args.distributed.initialize()
     cfg = args.config
     kind = "imitate" if isinstance(args, Imitate) else "train"
-    trainer = make_learner(cfg)
+    trainer = learner_for(cfg)
     budgets = args.budgets or (cfg.budget.bits,)
     spec = SweepSpec(args.seeds, args.lams, tuple(budgets))
     check_fits(trainer, len(spec.runs()), args.eval_episodes, jax.devices())
