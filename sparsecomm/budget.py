@@ -86,6 +86,12 @@ class BudgetConfig:
     (a symmetric step, controller v2). ours: 0.3 (10x in 8 updates): on the CPU preset it
     turned v2's collapses into short dips that the team recovers from, and budget 16 went from
     0.781 to 0.989 success at 16.0 bits per step (docs/budget.md, controller v5)."""
+    relief_floor: float | None = None
+    """Bound of the relief: while the team's success is down, the price falls no lower than this
+    fraction of the last price at which its success held, and that bound itself falls at
+    ``dual_lr`` per update while success stays down (so no link is held silent for good).
+    ``None``: unbounded (controller v5). ours: ``None`` for RL (its dips are short); imitation's
+    default is set in ``ILConfig.budget`` (docs/budget.md, controller v6)."""
     engage_success: float = 0.5
     """The target starts to fall when the moving average of the batch success rate first reaches
     this. ours."""
@@ -122,6 +128,7 @@ class BudgetConfig:
             "dual_lr": self.dual_lr > 0 and math.isfinite(self.dual_lr),
             "relief_lr": self.relief_lr is None
             or (self.relief_lr > 0 and math.isfinite(self.relief_lr)),
+            "relief_floor": self.relief_floor is None or 0 < self.relief_floor < 1,
             "engage_success": 0 <= self.engage_success <= 1,
             "halving_updates": self.halving_updates > 0 and math.isfinite(self.halving_updates),
             "hold_success": 0 <= self.hold_success <= 1,
@@ -130,6 +137,7 @@ class BudgetConfig:
         }
         allowed = {
             "relief_lr": "None or finite and > 0",
+            "relief_floor": "None or in (0, 1)",
             "weight_max": f"finite and >= weight_min ({self.weight_min})",
             "engage_success": "in [0, 1]",
             "hold_success": "in [0, 1]",
@@ -171,6 +179,7 @@ class BudgetState(struct.PyTreeNode):
     engaged: jax.Array  # () bool, the team has succeeded once: the target has started to fall
     success: jax.Array  # () float32, moving average of the batch success rate
     best: jax.Array  # () float32, the best moving average so far
+    held: jax.Array  # () float32, log weight when success last held (decays while it does not)
 
 
 def init(cfg: BudgetConfig, budget, lam) -> BudgetState:
@@ -185,6 +194,7 @@ def init(cfg: BudgetConfig, budget, lam) -> BudgetState:
         engaged=jnp.zeros((), bool),
         success=jnp.zeros((), f32),
         best=jnp.zeros((), f32),
+        held=jnp.log(jnp.maximum(jnp.asarray(lam, f32), cfg.weight_init)),
     )
 
 
@@ -231,22 +241,34 @@ def update(cfg: BudgetConfig, state: BudgetState, bits, success) -> BudgetState:
         step = jnp.where(keeping_up & (excess > 0), cfg.dual_lr * excess, cfg.relief_lr * relief)
     lo, hi = math.log(cfg.weight_min), math.log(cfg.weight_max)
     stepped = jnp.clip(state.log_weight + step, lo, hi)
+    held = jnp.where(keeping_up, state.log_weight, state.held - cfg.dual_lr)
+    if cfg.relief_floor is not None:  # fall no lower than a fraction of the last good price
+        floor = jnp.minimum(held + math.log(cfg.relief_floor), state.log_weight)
+        stepped = jnp.maximum(stepped, floor)
     log_weight = jnp.where(state.engaged, stepped, state.log_weight)
+    held = jnp.where(state.engaged, held, state.log_weight)
     return state.replace(
-        log_weight=log_weight, target=target, start=start, engaged=engaged, success=ema, best=best
+        log_weight=log_weight,
+        target=target,
+        start=start,
+        engaged=engaged,
+        success=ema,
+        best=best,
+        held=held,
     )
 
 
 def decoupled_update(
-    cfg: BudgetConfig, params: dict, message_penalty, hidden, valid, price, levels
+    cfg: BudgetConfig, params: dict, message_penalty, hidden, valid, price, penalty
 ):
     """A learner's parameters after the decoupled penalty step (unchanged unless
-    ``cfg.decoupled``). ``message_penalty(head, hidden, levels)`` is ``Team.message_penalty``;
+    ``cfg.decoupled``). ``message_penalty(head, hidden, penalty)`` is ``Team.message_penalty``
+    and ``penalty`` the channel's per-element cost (``ChannelConfig.penalty``);
     ``hidden`` (T, B, K, H) and ``valid`` (T, B) come from the update's rollout."""
     if not cfg.decoupled:
         return params
     actor = penalty_step(
-        cfg, params["actor"], lambda head: message_penalty(head, hidden, levels), valid, price
+        cfg, params["actor"], lambda head: message_penalty(head, hidden, penalty), valid, price
     )
     return {**params, "actor": actor}
 

@@ -115,6 +115,20 @@ def load_meta(folder: str | os.PathLike) -> dict:
     return meta
 
 
+ADDED_FIELDS = {("budget", "held"): ("budget", "log_weight")}
+"""State fields added after checkpoints were first written: a checkpoint without one takes its
+value from the named field (``held``, the bit-budget controller's last good price, issue 14's
+controller v6, starts at the current price)."""
+
+
+def _upgrade(state: dict) -> dict:
+    for (part, field), (src_part, src) in ADDED_FIELDS.items():
+        sub = state.get(part) if isinstance(state, dict) else None
+        if isinstance(sub, dict) and field not in sub and src in state.get(src_part, {}):
+            sub[field] = state[src_part][src]
+    return state
+
+
 def load(folder: str | os.PathLike, template):
     """Restore a state saved by :func:`save` into the structure of ``template``, after checking
     the SHA-256 of ``state.msgpack`` against the one recorded at save time."""
@@ -130,7 +144,9 @@ def load(folder: str | os.PathLike, template):
         )
     raw_template = raw_keys(template)
     try:
-        raw = serialization.from_bytes(raw_template, data)
+        raw = serialization.from_state_dict(
+            raw_template, _upgrade(serialization.msgpack_restore(data))
+        )
         return jax.tree.map(
             lambda t, r: jax.random.wrap_key_data(r) if is_key(t) else jax.numpy.asarray(r),
             template,

@@ -180,10 +180,12 @@ class ILConfig:
     """The channel."""
     agent: AgentConfig = AgentConfig()
     """The learners' networks (the critic is unused)."""
-    budget: BudgetConfig = BudgetConfig(weight_init=1e-3)
+    budget: BudgetConfig = BudgetConfig(weight_init=1e-3, relief_floor=0.1)
     """The bit budget and its controller, as in RL (``sparsecomm.budget``). ours: the weight
     starts at 1e-3 when the controller engages (imitation's lambda has other units: its channel
-    collapses between lambda 0.003 and 0.01, docs/imitation.md)."""
+    collapses between lambda 0.003 and 0.01, docs/imitation.md), and while success is down it
+    falls no lower than 0.1 of the last price that held it (controller v6: unbounded, the
+    price fell to 1e-5 in each dip and needed ~280 updates to climb back, docs/budget.md)."""
     expert: str = "oracle"
     """``oracle``: the centralised scripted controller that sees every goal and sends nothing
     (the paper's "communication-free expert"). ``checkpoint``: a team trained by
