@@ -2,7 +2,7 @@
 
 Fuzzing (default): for each code, builds valid packets of random links (``--elements`` symbols
 each, a random share of them null) and feeds ``decode`` ``--packets`` malformed packets, in equal
-shares of six kinds:
+shares of six kinds (seven for ``fitted``):
 
 * ``random``: random bytes, 1 to 2x the longest valid packet;
 * ``truncated``: a valid packet cut to 1 .. len - 1 bytes (a cut to 0 bytes is the empty packet,
@@ -13,15 +13,24 @@ shares of six kinds:
 * ``wrong shape``: a valid packet decoded with another claimed shape (0 .. 4 C elements but not
   C, or a huge one, 2^25 .. 2^62 elements);
 * ``re-checksummed``: one of the first four mutations applied to a packet's body, followed by a
-  valid CRC-32, so that only the parser's checks stand in the way.
+  valid CRC-32 (seeded with the packet's implicit header, as the code does), so that only the
+  parser's checks stand in the way;
+* ``wrong prev`` (``fitted`` only): a valid packet decoded with another previous message (the
+  packet's with one element changed, or another packet's).
+
+``fitted``: a :class:`~sparsecomm.channel.fitted.FittedCode` fitted (seeded) to a sticky
+synthetic source like a trained team's (400 links x 60 steps); the pool's links are steps of a
+fresh source, each coded given its previous step (3/4) or a random valid message (1/4), and every
+mutated packet is decoded with its packet's previous message (random bytes: any packet's).
 
 Each decode gets a time limit (``--time-limit`` seconds, SIGALRM). Counts: clean errors
 (``PacketError``); valid decodes (``re-checksummed``: the packet is the valid packet of another
 link, re-encoding the result gives it back; other kinds: the result is the original link,
 impossible with a canonical encoding); silent wrong decodes (any other successful decode: for
-the first five kinds, a result that is not the original link, or any result of random bytes;
+the other kinds, a result that is not the original link, or any result of random bytes;
 for ``re-checksummed``, a packet accepted that its result does not re-encode to); other
-exceptions; hangs. Only CRC-32 collisions should decode wrongly: ~2^-32 = 2.3e-10 per packet.
+exceptions; hangs. Only CRC-32 collisions should decode wrongly: ~2^-32 = 2.3e-10 per packet
+(for ``fitted``, ``wrong shape`` is always a clean error: it holds only C elements).
 
     python benchmarks/decoder_fuzz.py --packets 1000000
 
@@ -45,14 +54,17 @@ import numpy as np
 import tyro
 
 from sparsecomm import channel
+from sparsecomm.channel.fitted import FittedCode, fit
+
+NAMES = (*channel.CODE_NAMES, "fitted")
 
 
 @dataclasses.dataclass
 class Args:
     packets: int = 1_000_000
     """Malformed packets per code."""
-    codes: tuple[str, ...] = channel.CODE_NAMES
-    """Codes whose decoders to fuzz."""
+    codes: tuple[str, ...] = NAMES
+    """Codes whose decoders to fuzz (``fitted``: a code fitted to a sticky synthetic source)."""
     elements: int = 10
     """C, elements per link (paper: 10)."""
     levels: int = 15
@@ -70,6 +82,7 @@ class Args:
 
 
 KINDS = ("random", "truncated", "bit-flipped", "spliced", "wrong shape", "re-checksummed")
+FITTED_KINDS = (*KINDS, "wrong prev")
 
 
 class _Hang(Exception):
@@ -90,6 +103,24 @@ def random_links(rng: np.random.Generator, n: int, c: int, levels: int, name: st
         values[values == 0] = 1.0
         return np.where(present, values, np.float32(0.0))
     return np.where(present, rng.integers(1, levels + 1, (n, c)), 0)
+
+
+def sticky_links(rng: np.random.Generator, n: int, steps: int, c: int, levels: int) -> np.ndarray:
+    """(n, steps, c) symbols like a trained team's (``sticky_source`` of the fitted code's
+    tests): the first elements mostly null, the last mostly busy; each element keeps its symbol
+    with probability 0.8, else is redrawn (null with the element's probability, else 1 + a
+    geometric number)."""
+    null_p = np.linspace(0.95, 0.1, c)
+
+    def draw():
+        busy = rng.random((n, c)) > null_p
+        return np.where(busy, np.minimum(rng.geometric(0.35, (n, c)), levels), 0)
+
+    out = np.zeros((n, steps, c), np.int64)
+    out[:, 0] = draw()
+    for t in range(1, steps):
+        out[:, t] = np.where(rng.random((n, c)) < 0.8, out[:, t - 1], draw())
+    return out
 
 
 def _same(a: np.ndarray, b: np.ndarray) -> bool:
@@ -113,6 +144,8 @@ def _mutate(r: random.Random, kind: str, pool: list[bytes], longest: int, c: int
         for b in r.sample(range(8 * len(p)), min(r.randint(1, 8), 8 * len(p))):
             q[b // 8] ^= 1 << (b % 8)
         return bytes(q), i, c
+    if kind == "wrong prev":  # the packet itself: the caller changes its previous message
+        return p, i, c
     if kind == "spliced":
         while True:
             q = pool[r.randrange(len(pool))]
@@ -124,48 +157,80 @@ def _mutate(r: random.Random, kind: str, pool: list[bytes], longest: int, c: int
     return p, i, r.choice([k for k in range(4 * c + 1) if k != c])
 
 
-def _rechecksum(r: random.Random, bodies: list[bytes], longest: int, c: int):
-    """A mutated body (random, truncated, bit-flipped or spliced) with a valid CRC-32 (the
-    count-seeded CRC of sparsecomm.channel.codes): only the parser stands in the way."""
-    body, i, _ = _mutate(r, r.choice(KINDS[:4]), bodies, longest - 4, c)
-    crc = zlib.crc32(body, zlib.crc32(c.to_bytes(4, "big")))
-    return body + crc.to_bytes(4, "big"), i, c
+def _crc(body: bytes, c: int, code, prev) -> bytes:
+    """The CRC-32 of a packet's body, seeded with its implicit header: the count C (the CRC of
+    sparsecomm.channel.codes), then for a fitted code its fingerprint and the previous message
+    (``FittedCode._crc``)."""
+    header = c.to_bytes(4, "big")
+    if isinstance(code, FittedCode):
+        header += code.fingerprint + prev.astype(np.uint8).tobytes()
+    return zlib.crc32(body, zlib.crc32(header)).to_bytes(4, "big")
+
+
+def _other_prev(r: random.Random, prevs: list, prev: np.ndarray, levels: int) -> np.ndarray:
+    """A valid previous message other than ``prev``: ``prev`` with one element changed, or
+    another packet's."""
+    while True:
+        if r.random() < 0.5:
+            other = prev.copy()
+            other[r.randrange(other.size)] = r.randint(0, levels)
+        else:
+            other = prevs[r.randrange(len(prevs))]
+        if not np.array_equal(other, prev):
+            return other
 
 
 def fuzz_code(args: Args, name: str) -> dict:
-    code = channel.Code(name, args.levels)
     c = args.elements
-    rng = np.random.default_rng([args.seed, channel.CODE_NAMES.index(name)])
-    links = random_links(rng, args.pool, c, args.levels, name)
-    encoded = [channel.encode(link, code) for link in links]
+    rng = np.random.default_rng([args.seed, NAMES.index(name)])
+    if name == "fitted":
+        source = sticky_links(rng, 400, 60, c, args.levels)
+        code = fit(source, levels=args.levels, group=min(5, c))
+        steps = sticky_links(rng, args.pool, 2, c, args.levels)  # (previous step, step)
+        links = steps[:, 1]
+        random_prev = random_links(rng, args.pool, c, args.levels, "paper")
+        prev_all = np.where(rng.random((args.pool, 1)) < 0.75, steps[:, 0], random_prev)
+    else:
+        code = channel.Code(name, args.levels)
+        links = random_links(rng, args.pool, c, args.levels, name)
+        prev_all = [None] * args.pool  # the named codes have no previous message
+    encoded = [channel.encode(m, code, prev=q) for m, q in zip(links, prev_all, strict=True)]
     keep = [k for k, p in enumerate(encoded) if p]
     packets = [encoded[k] for k in keep]
     originals = [links[k] for k in keep]
-    for p, m in zip(packets, originals, strict=True):  # the pool itself round-trips
-        assert _same(channel.decode(p, code, (c,)), m)
+    prevs = [prev_all[k] for k in keep]
+    for p, m, q in zip(packets, originals, prevs, strict=True):  # the pool itself round-trips
+        assert _same(channel.decode(p, code, (c,), prev=q), m)
+        assert _crc(p[:-4], c, code, q) == p[-4:]  # and re-checksumming computes its CRC
     longest = max(map(len, packets))
     bodies = [p[:-4] for p in packets]
-    r = random.Random(args.seed * 1_000_003 + channel.CODE_NAMES.index(name))
+    r = random.Random(args.seed * 1_000_003 + NAMES.index(name))
+    kinds = FITTED_KINDS if name == "fitted" else KINDS
     counts = {
         kind: dict.fromkeys(("packets", "clean", "wrong", "valid", "other", "hang"), 0)
-        for kind in KINDS
+        for kind in kinds
     }
     others: dict[str, int] = {}
     slowest = 0.0
     old = signal.signal(signal.SIGALRM, _alarm)
     try:
         for n in range(args.packets):
-            kind = KINDS[n % len(KINDS)]
-            if kind == "re-checksummed":
-                data, i, count = _rechecksum(r, bodies, longest, c)
+            kind = kinds[n % len(kinds)]
+            if kind == "re-checksummed":  # a mutated body with a valid CRC-32
+                data, i, count = _mutate(r, r.choice(KINDS[:4]), bodies, longest - 4, c)
             else:
                 data, i, count = _mutate(r, kind, packets, longest, c)
+            prev = prevs[i if i >= 0 else n % len(prevs)]  # random bytes: any packet's
+            if kind == "re-checksummed":
+                data += _crc(data, c, code, prev)
+            elif kind == "wrong prev":
+                prev = _other_prev(r, prevs, prev, args.levels)
             row = counts[kind]
             row["packets"] += 1
             t0 = time.perf_counter()
             signal.setitimer(signal.ITIMER_REAL, args.time_limit)
             try:
-                out = channel.decode(data, code, (count,))
+                out = channel.decode(data, code, (count,), prev=prev)
             except channel.PacketError:
                 row["clean"] += 1
             except _Hang:
@@ -176,7 +241,7 @@ def fuzz_code(args: Args, name: str) -> dict:
                 others[key] = others.get(key, 0) + 1
             else:
                 if kind == "re-checksummed":  # a valid packet of another link, or accepted
-                    ok = channel.encode(out, code) == data  # a non-canonical one (a bug)
+                    ok = channel.encode(out, code, prev=prev) == data  # a non-canonical one (a bug)
                 else:  # decoded to the original: impossible, the encoding is canonical
                     ok = count == c and _same(out, originals[i])
                 row["valid" if ok else "wrong"] += 1
@@ -185,7 +250,8 @@ def fuzz_code(args: Args, name: str) -> dict:
             slowest = max(slowest, time.perf_counter() - t0)
     finally:
         signal.signal(signal.SIGALRM, old)
-    return {"counts": counts, "others": others, "slowest": slowest}
+    fingerprint = code.fingerprint.hex() if name == "fitted" else None
+    return {"counts": counts, "others": others, "slowest": slowest, "fingerprint": fingerprint}
 
 
 def _gamma_bits(x: np.ndarray) -> np.ndarray:
@@ -285,6 +351,7 @@ def main(args: Args) -> None:
     for name, res in results.items():
         print(
             f"{name}: {res['seconds']:.1f} s, slowest decode {1e3 * res['slowest']:.2f} ms"
+            + (f", code fingerprint {res['fingerprint']}" if res["fingerprint"] else "")
             + "".join(f"\n  other: {n} x {k}" for k, n in res["others"].items())
         )
 

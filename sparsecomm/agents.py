@@ -14,7 +14,7 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 
-from sparsecomm.channel import bit_penalty, gate
+from sparsecomm.channel import gate
 from sparsecomm.configs import AgentConfig
 
 
@@ -138,18 +138,19 @@ class Team:
             return self.actor.apply(actor_params, carry, jnp.concatenate([x, ids], axis=-1))
         return jax.vmap(self.actor.apply, in_axes=(0, 1, 1), out_axes=1)(actor_params, carry, x)
 
-    def message_penalty(self, head_params, hidden: jax.Array, levels: int) -> jax.Array:
+    def message_penalty(self, head_params, hidden: jax.Array, penalty) -> jax.Array:
         """The bit penalty of the messages the head ``head_params`` (the actors' ``message``
         layer) emits from GRU states ``hidden`` (..., K, H): summed over each agent's links and
         elements, (..., K). The same numbers as the rollout's penalty for the same states, as a
-        function of the head alone (for a penalty step outside the optimiser)."""
+        function of the head alone (for a penalty step outside the optimiser). ``penalty``: the
+        channel's per-element cost of ``z`` (``ChannelConfig.penalty``)."""
         kernel, bias = head_params["kernel"], head_params["bias"]
         if self.cfg.share_params:
             a = hidden @ kernel + bias
         else:  # one head per agent, stacked on a leading agent axis
             a = jnp.einsum("...kh,khm->...km", hidden, kernel) + bias
         z = gate(self.cfg.message_gate, a)
-        return bit_penalty(z, levels).sum(-1)
+        return penalty(z).sum(-1)
 
     def value(self, critic_params, state: jax.Array) -> jax.Array:
         """(..., state_dim) -> (..., K) values."""

@@ -1,7 +1,9 @@
-"""Command line: ``sparsecomm train | imitate | eval | render | export | reproduce`` (tyro).
+"""Command line: ``sparsecomm train | imitate | eval | render | export | fit-code | reproduce``
+(tyro).
 
 Every flag is a documented config field: ``sparsecomm train --help`` lists them all. The work is
-done in :mod:`sparsecomm.experiment` and :mod:`sparsecomm.reproduce`; this module only parses.
+done in :mod:`sparsecomm.experiment`, :mod:`sparsecomm.codestats` and :mod:`sparsecomm.reproduce`;
+this module only parses.
 """
 
 from __future__ import annotations
@@ -9,6 +11,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from sparsecomm.codestats import FitCode, fit_code
 from sparsecomm.configs import PRESETS
 from sparsecomm.errors import RunError
 from sparsecomm.experiment import (
@@ -41,6 +44,7 @@ COMMANDS = {
     "eval": (Eval, evaluate),
     "render": (Render, render),
     "export": (Export, export_team),
+    "fit-code": (FitCode, fit_code),
     "reproduce": (Reproduce, reproduce),
 }
 

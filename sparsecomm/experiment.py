@@ -77,9 +77,15 @@ class Train:
     distributed: Distributed = dataclasses.field(default_factory=Distributed)
     """Multi-host: every process runs this command; the runs and episodes are split over all
     processes' devices, process 0 writes the files."""
+    init_from: Path | None = None
+    """Fine-tune: every run starts from the parameters of run ``init_index`` of this run folder
+    (actor and critic; an exported team gives the actor only) with a fresh optimiser, e.g. to
+    retrain a team under another code or budget. The networks must have the same shapes."""
+    init_index: int = 0
+    """Which run of ``init_from`` (lambda-major, then budget, then seed)."""
 
     def __post_init__(self):
-        _at_least(self, seeds=1, chunk=1, checkpoint_every=1, eval_episodes=1)
+        _at_least(self, seeds=1, chunk=1, checkpoint_every=1, eval_episodes=1, init_index=0)
         SweepSpec(self.seeds, tuple(self.lams), tuple(self.budgets or ()) or (None,))
         check_budget_fits(self.config, self.budgets or None, "budgets")
 
@@ -229,6 +235,28 @@ def load_run(folder: Path):
     return config, trainer, runs, state.params["actor"]
 
 
+def load_params(folder: Path, index: int = 0) -> dict:
+    """The parameters of run ``index`` of a run folder (``{"actor", "critic"}``; an exported
+    team has its actor only), without the run axis."""
+    folder = Path(folder)
+    if (folder / "team.json").exists():
+        _, _, runs, actor = load_run(folder)
+        params = {"actor": actor}
+    else:
+        if not folder.is_dir():
+            raise RunError(f"no run folder at {folder}")
+        meta = checkpoint.load_meta(folder / "checkpoint")
+        config, trainer = _learner(meta.get("kind"), meta["config"], folder)
+        runs = spec_from_meta(meta).runs()
+        template = jax.vmap(trainer.init)(*run_arrays(config, runs))
+        params = checkpoint.load(folder / "checkpoint", template).params
+    if not 0 <= index < len(runs):
+        raise RunError(
+            f"init_index must be in [0, {len(runs) - 1}] (the runs of {folder}), got {index}"
+        )
+    return jax.tree.map(lambda x: np.asarray(x[index]), to_host(params))
+
+
 def export_team(args: Export) -> Path:
     """Write run ``args.index`` of a run folder as an exported team (see :class:`Export`)."""
     config, trainer, runs, actor = load_run(args.run)
@@ -304,6 +332,7 @@ def train(args: Train) -> dict:
     budgets = args.budgets or (cfg.budget.bits,)
     spec = SweepSpec(args.seeds, args.lams, tuple(budgets))
     check_fits(trainer, len(spec.runs()), args.eval_episodes, jax.devices())
+    start = None if args.init_from is None else load_params(args.init_from, args.init_index)
     state, runs, wall = run_sweep(
         trainer,
         cfg,
@@ -319,6 +348,8 @@ def train(args: Train) -> dict:
         progress=args.progress,
         kind=kind,
         devices=jax.devices(),
+        start_params=start,
+        start_from="" if args.init_from is None else f"{args.init_from}:{args.init_index}",
     )
     actor = state.params["actor"]
     results = evaluate_runs(trainer, runs, actor, args.eval_episodes, devices=jax.devices())

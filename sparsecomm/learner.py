@@ -108,7 +108,13 @@ def make_learner(
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         params = bit_budget.decoupled_update(
-            config.budget, params, team.message_penalty, hidden, valid, price, config.channel.levels
+            config.budget,
+            params,
+            team.message_penalty,
+            hidden,
+            valid,
+            price,
+            config.channel.penalty,
         )
         for part, g in grads.items():
             metrics[f"{part}_grad_norm"] = optax.tree.norm(g)

@@ -62,6 +62,7 @@ class Trajectory:
     msg_log_probs: jax.Array  # (T, B, K) log-prob of sender i's symbols ("reinforced"; else 0)
     env_states: Any = None  # batched NavState per step (only when ``keep_states``)
     hidden: Any = None  # (T, B, K, H) GRU states the messages came from (only ``keep_hidden``)
+    symbols: Any = None  # (T, B, K, K-1, C) int32 symbols of each link (only ``keep_symbols``)
 
 
 def rollout(
@@ -78,6 +79,7 @@ def rollout(
     remat: bool = False,
     keep_states: bool = False,
     keep_hidden: bool = False,
+    keep_symbols: bool = False,
 ) -> Trajectory:
     """Play ``num_envs`` whole episodes.
 
@@ -94,6 +96,8 @@ def rollout(
       keep_states: also return the environment states (for rendering and tests).
       keep_hidden: also return the GRU states each step's messages came from (for a penalty
         step outside the optimiser, ``sparsecomm.budget.penalty_step``).
+      keep_symbols: also return the symbols of every link (for measuring and fitting codes,
+        ``sparsecomm.codebook``).
     """
     k = env.num_agents
     num_steps = env.config.max_steps
@@ -101,6 +105,7 @@ def rollout(
     obs, state = jax.vmap(env.reset)(jax.random.split(k_reset, num_envs))
     c = channel_cfg.num_elements
     msgs = jnp.zeros((num_envs, k, (k - 1) * c), jnp.float32)
+    prev = jnp.zeros((num_envs, k, k - 1, c), jnp.int32)  # each link's symbols at t - 1
     carry = team.initial_carry(num_envs)
     expert_carry = expert.init(num_envs) if expert is not None else None
     # All the step's randomness is drawn before the loop, in a few large vectorised draws.
@@ -117,12 +122,12 @@ def rollout(
     # Episodes are independent: split them over the mesh's episodes axis, if there is one.
     batched = ("env", "gumbel", "dither", "mix")
     noise.update(split_episodes({n: v for n, v in noise.items() if n in batched}, axis=1))
-    state, obs, msgs, carry, chan_keys = split_episodes(
-        (state, obs, msgs, carry, chan_keys), axis=0
+    state, obs, msgs, prev, carry, chan_keys = split_episodes(
+        (state, obs, msgs, prev, carry, chan_keys), axis=0
     )
 
     def step(loop, noise):
-        state, obs, msgs, carry, expert_carry = loop
+        state, obs, msgs, carry, expert_carry, prev = loop
         t = noise["t"]
         carry, logits, z = team.act(actor_params, carry, obs, msgs)
         log_probs = jax.nn.log_softmax(logits)
@@ -136,7 +141,7 @@ def rollout(
             actions = jnp.where(use_expert, expert_actions, actions)
         else:
             expert_actions = jnp.full(actions.shape, -1)
-        sent = channel.transmit(channel_cfg, z, noise["dither"], chan_keys, t)
+        sent = channel.transmit(channel_cfg, z, noise["dither"], chan_keys, t, prev)
         next_msgs = channel.deliver(sent.z_hat)
         global_state = jax.vmap(env.global_state)(state)
         valid = ~state.done
@@ -161,12 +166,14 @@ def rollout(
             msg_log_probs=sent.log_prob,
             env_states=state if keep_states else None,
             hidden=jax.lax.stop_gradient(carry) if keep_hidden else None,
+            symbols=sent.symbols if keep_symbols else None,
         )
-        return (next_state, next_obs, next_msgs, carry, expert_carry), record
+        loop = (next_state, next_obs, next_msgs, carry, expert_carry, sent.symbols)
+        return loop, record
 
     if remat:
         step = jax.checkpoint(step)
-    init = (state, obs, msgs, carry, expert_carry)
+    init = (state, obs, msgs, carry, expert_carry, prev)
     _, traj = jax.lax.scan(step, init, noise)
     return traj
 

@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from sparsecomm import checkpoint
 from sparsecomm.configs import to_dict
-from sparsecomm.errors import CheckpointError, DivergedError
+from sparsecomm.errors import CheckpointError, DivergedError, RunError
 from sparsecomm.sharding import RUNS, is_primary, make_mesh, place_runs, to_host, use_mesh
 
 FIRST_COLUMNS = ["seed", "lam", "budget", "update", "env_steps", "episodes"]
@@ -219,6 +219,26 @@ def compiled(learner, sharded: bool):
     return init, steps
 
 
+def _start_from(params: dict, start: dict, where: str) -> dict:
+    """``params`` (with a run axis) with each part in ``start`` (no run axis) copied into every
+    run; a part whose shapes differ is refused, naming it."""
+    out = dict(params)
+    for part, values in start.items():
+        same = jax.tree.structure(params[part]) == jax.tree.structure(values) and all(
+            t.shape[1:] == np.shape(v)
+            for t, v in zip(jax.tree.leaves(params[part]), jax.tree.leaves(values), strict=True)
+        )
+        if not same:
+            raise RunError(
+                f"init_from {where}: its {part} network has other shapes than this run's "
+                "(the agent config must match)"
+            )
+        out[part] = jax.tree.map(
+            lambda t, v: jnp.broadcast_to(jnp.asarray(v, t.dtype), t.shape), params[part], values
+        )
+    return out
+
+
 def run_sweep(
     learner,
     config,
@@ -236,8 +256,14 @@ def run_sweep(
     kind: str = "train",
     on_chunk: Callable | None = None,
     devices=None,
+    start_params=None,
+    start_from: str = "",
 ):
     """Run (or resume) a sweep; returns a :class:`Sweep` (final state, runs, elapsed time).
+
+    ``start_params`` (one run's parameters, no run axis): every run starts from them, with a
+    fresh optimiser state (fine-tuning; ``start_from`` names where they came from, recorded in
+    the checkpoint). A resumed sweep continues from its checkpoint instead.
 
     The runs, and each run's ``episodes_per_update`` episodes, are split over ``devices``
     (default: all local devices; :func:`sparsecomm.sharding.make_mesh`); pass
@@ -251,6 +277,9 @@ def run_sweep(
     init, steps = compiled(learner, mesh is not None)
     with use_mesh(mesh):
         state = init(*place_runs((keys, lams, budgets), mesh))
+        if start_params is not None:
+            params = _start_from(state.params, start_params, start_from)
+            state = state.replace(params=params, opt_state=jax.vmap(learner.tx.init)(params))
     meta = {
         "kind": kind,
         "config": to_dict(config),
@@ -259,6 +288,7 @@ def run_sweep(
         "budgets": list(spec.budgets),
         "num_updates": num_updates,
         "chunk": chunk,
+        "start_from": start_from,
     }
     ckpt = out / "checkpoint"
     primary = is_primary()  # writes the logs and checkpoints
@@ -346,8 +376,10 @@ def check_resumable(old: dict, meta: dict, ckpt: Path) -> None:
     old_cfg = {k: v for k, v in old.get("config", {}).items() if k not in RESUME_MAY_CHANGE}
     new_cfg = {k: v for k, v in meta["config"].items() if k not in RESUME_MAY_CHANGE}
     diffs = _differences(old_cfg, new_cfg, "config")
-    for field in ("kind", "seeds", "lams", "budgets"):
-        diffs += _differences(old.get(field), meta[field], field)
+    for field in ("kind", "seeds", "lams", "budgets", "start_from"):
+        diffs += _differences(
+            old.get(field, "" if field == "start_from" else None), meta[field], field
+        )
     if diffs:
         raise CheckpointError(
             f"cannot resume from {ckpt}: this run differs in "

@@ -177,7 +177,7 @@ def test_message_penalty_of_the_head_matches_the_rollout(share, fast_compile):
     actor = tr.team.init(jax.random.key(0))["actor"]
     traj = rollout(tr.team, tr.env, cfg.channel, actor, jax.random.key(1), 3, keep_hidden=True)
     head = actor["params"]["message"]
-    again = tr.team.message_penalty(head, traj.hidden, cfg.channel.levels).sum(-1)
+    again = tr.team.message_penalty(head, traj.hidden, cfg.channel.penalty).sum(-1)
     np.testing.assert_allclose(again, traj.penalty, rtol=1e-5)
 
 
@@ -227,3 +227,40 @@ def test_relief_rate_lets_the_price_fall_fast_below_the_target_and_while_success
     w2 = float(budget.weight(state))
     state = step(state, 500.0, 0.1)  # success down: the price falls whatever the bits
     assert float(budget.weight(state)) == pytest.approx(w2 * math.exp(-0.3), rel=1e-4)
+
+
+def test_relief_floor_bounds_the_fall_to_a_fraction_of_the_last_good_price_then_decays():
+    cfg = BudgetConfig(success_ema=1.0, dual_lr=0.03, relief_lr=0.3, relief_floor=0.1)
+    state = budget.init(cfg, 10.0, 0.0)
+    step = jax.jit(lambda s, b, ok: budget.update(cfg, s, b, ok))
+    for _ in range(20):  # engaged, success held, bits above target: the price rises
+        state = step(state, 100.0, 1.0)
+    good = float(jnp.exp(state.held))  # the price in use at the last update that held success
+    assert good == pytest.approx(float(budget.weight(state)), rel=0.02)
+    for _ in range(10):  # success down: the price falls fast, but not below 0.1 x good
+        state = step(state, 100.0, 0.1)
+    # the bound itself falls at dual_lr per update while success stays down (10 updates)
+    floor = 0.1 * good * math.exp(-0.03 * 10)
+    assert float(budget.weight(state)) == pytest.approx(floor, rel=1e-3)
+    unbounded = dataclasses.replace(cfg, relief_floor=None)
+    free = budget.init(unbounded, 10.0, 0.0)
+    free_step = jax.jit(lambda s, b, ok: budget.update(unbounded, s, b, ok))
+    for _ in range(20):
+        free = free_step(free, 100.0, 1.0)
+    for _ in range(10):
+        free = free_step(free, 100.0, 0.1)
+    assert float(budget.weight(free)) == pytest.approx(good * math.exp(-3.0), rel=0.02)  # < floor
+    for _ in range(300):  # a long failure: the bound decays away to weight_min
+        state = step(state, 100.0, 0.1)
+    assert float(budget.weight(state)) == pytest.approx(cfg.weight_min, rel=1e-3)
+
+
+def test_checkpoint_from_before_the_relief_floor_loads_with_held_at_the_current_price(tmp_path):
+    from sparsecomm import checkpoint
+
+    state = {"budget": budget.init(BudgetConfig(), 16.0, 0.0).replace(log_weight=jnp.float32(-2.0))}
+    old = {"budget": {k: v for k, v in state["budget"].__dict__.items() if k != "held"}}
+    checkpoint.save(tmp_path / "ckpt", old, {"what": "a checkpoint written before `held`"})
+    back = checkpoint.load(tmp_path / "ckpt", state)
+    assert float(back["budget"].held) == -2.0
+    assert float(back["budget"].log_weight) == -2.0

@@ -8,6 +8,7 @@ Usable on its own in any JAX model::
     cost = lam * channel.bit_penalty(z, levels=15).sum()   # differentiable bit cost
     bits = channel.payload_bits(m, "paper").sum()          # real bits sent (paper code)
     wire = channel.wire_bits(m, "paper")                   # packet bits of each link (last axis)
+    code = channel.fit(links, levels=15)                   # a code fitted to (N, T, C) symbols
     packet = channel.encode(m, "paper")                    # one packet, b"" when m is all null
     assert (channel.decode(packet, "paper", m.shape) == m).all()  # malformed: PacketError
 
@@ -25,11 +26,13 @@ from sparsecomm.channel.codes import (
     as_code,
     decode,
     encode,
+    frequency_remap,
     packet_bits,
     paper_length,
     payload_bits,
     wire_bits,
 )
+from sparsecomm.channel.fitted import FittedCode, fit
 from sparsecomm.channel.gate import GATES, gate, hard_gate
 from sparsecomm.channel.links import (
     CHANNEL_MODES,
@@ -42,7 +45,7 @@ from sparsecomm.channel.links import (
     step_dither,
     transmit,
 )
-from sparsecomm.channel.penalty import bit_penalty
+from sparsecomm.channel.penalty import bit_penalty, expected_bits
 from sparsecomm.channel.quantizer import (
     dequantize,
     dither,
@@ -58,6 +61,7 @@ __all__ = [
     "MAX_ELEMENTS",
     "ChannelConfig",
     "Code",
+    "FittedCode",
     "PacketError",
     "Sent",
     "as_code",
@@ -68,6 +72,9 @@ __all__ = [
     "dither",
     "dither_key",
     "encode",
+    "expected_bits",
+    "fit",
+    "frequency_remap",
     "gate",
     "hard_gate",
     "link_dither",

@@ -54,6 +54,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sparsecomm.channel.fitted import FittedCode
 from sparsecomm.channel.quantizer import check_levels
 
 __all__ = [
@@ -62,6 +63,7 @@ __all__ = [
     "Code",
     "PacketError",
     "as_code",
+    "frequency_remap",
     "paper_length",
     "payload_bits",
     "wire_bits",
@@ -92,11 +94,46 @@ class Code:
     baseline)."""
     levels: int = 15
     """The paper's |M| (SPEC section 1 default 15): symbols are integers in [0, levels]."""
+    remap: tuple[tuple[int, ...], ...] = ()
+    """``paper`` only, a learned code (issue 17): row k maps element k's symbol m to the paper
+    codeword ``remap[k][m]`` sent for it (a permutation of 0..levels keeping 0, the null), so
+    the symbols a team sends most get the shortest codewords (:func:`frequency_remap`). Empty:
+    the paper's code. Payload bits are then ``L(remap[k][m])``."""
 
     def __post_init__(self):
         if self.name not in CODE_NAMES:
             raise ValueError(f"code must be one of {CODE_NAMES}, got {self.name!r}")
         check_levels(self.levels)
+        if self.remap:
+            if self.name != "paper":
+                raise ValueError(f"Code.remap is for the paper code only, got {self.name!r}")
+            for k, row in enumerate(self.remap):
+                if sorted(row) != list(range(self.levels + 1)) or row[0] != 0:
+                    raise ValueError(
+                        f"Code.remap[{k}] must be a permutation of 0..{self.levels} with "
+                        f"remap[{k}][0] = 0, got {row}"
+                    )
+
+    def mapped(self, m):
+        """The codeword indices of symbols ``m`` (..., C): ``remap[k][m]``, or ``m`` itself."""
+        if not self.remap:
+            return m
+        table = np.asarray(self.remap)
+        if isinstance(m, np.ndarray):
+            return table[np.arange(table.shape[0]), m]
+        return jnp.asarray(table, jnp.int32)[jnp.arange(table.shape[0]), m]
+
+    def unmapped(self, index: np.ndarray) -> np.ndarray:
+        """Inverse of :meth:`mapped` (host side)."""
+        if not self.remap:
+            return index
+        inverse = np.argsort(np.asarray(self.remap), axis=1)
+        return inverse[np.arange(inverse.shape[0]), index]
+
+    def lengths(self) -> np.ndarray:
+        """(C, levels + 1) payload bits of each element's symbols (remapped paper code)."""
+        table = np.asarray(self.remap)
+        return np.floor(np.log2(table + 1)).astype(np.int32)
 
     @property
     def fixed_width(self) -> int:
@@ -109,12 +146,27 @@ class Code:
         return (int(self.levels) + 1).bit_length() - 1
 
 
-def as_code(code: Code | str, levels: int = 15) -> Code:
-    """Accept a :class:`Code` or a code name (with ``levels``)."""
-    if isinstance(code, Code):
+def frequency_remap(counts) -> tuple[tuple[int, ...], ...]:
+    """A learned code's ``Code.remap`` from each element's symbol counts ``(C, levels)`` (index
+    m - 1): the most frequent symbol gets codeword 1 (1 bit), the next two 2 and 3, and so on
+    (ties by symbol); the null stays 0."""
+    counts = np.asarray(counts, np.float64)
+    rows = []
+    for row in counts:
+        order = np.argsort(-row, kind="stable")  # symbols (minus 1), most frequent first
+        remap = np.zeros(row.size + 1, np.int64)
+        remap[order + 1] = np.arange(1, row.size + 1)
+        rows.append(tuple(int(x) for x in remap))
+    return tuple(rows)
+
+
+def as_code(code: Code | FittedCode | str, levels: int = 15) -> Code | FittedCode:
+    """Accept a :class:`Code`, a :class:`~sparsecomm.channel.fitted.FittedCode` or a code name
+    (with ``levels``; a fitted code has no name alone: it is its tables)."""
+    if isinstance(code, (Code, FittedCode)):
         return code
-    if not isinstance(code, str):
-        raise ValueError(f"code must be a Code or one of {CODE_NAMES}, got {code!r}")
+    if not isinstance(code, str) or code == "fitted":
+        raise ValueError(f"code must be a Code, a FittedCode or one of {CODE_NAMES}, got {code!r}")
     return Code(code, levels)
 
 
@@ -128,22 +180,27 @@ def payload_bits(m: jax.Array, code: Code | str = "paper") -> jax.Array:
     """Payload bits of each element (the paper's measure for ``paper``), int32, jittable."""
     code = as_code(code)
     m = jnp.asarray(m)
-    if code.name == "paper":
-        return paper_length(m)
+    if code.name in ("paper", "fitted"):  # the paper's count, whatever the wire code
+        return paper_length(code.mapped(m) if code.name == "paper" else m)
     width = code.fixed_width if code.name == "fixed" else 32
     return jnp.full(m.shape, width, jnp.int32)
 
 
-def wire_bits(m: jax.Array, code: Code | str = "paper", *, crc: bool = True) -> jax.Array:
+def wire_bits(
+    m: jax.Array, code: Code | FittedCode | str = "paper", *, crc: bool = True, prev=None
+) -> jax.Array:
     """Bits on the wire of each link: ``8 * len(encode(link, code, crc=crc))``, int32, jittable.
 
     ``m`` (..., C): the last axis holds one link's elements (a scalar is a link of one element);
     returns (...). 0 for an all-null link (no packet); else the presence bitmap, the present
     elements' codewords, the padding to a byte and the CRC-32. Symbols are assumed valid (in
-    [0, levels]; :func:`encode` checks them, this function cannot under ``jit``).
+    [0, levels]; :func:`encode` checks them, this function cannot under ``jit``). ``prev``
+    (same shape): each link's previous message, for a fitted code (default: all nulls).
     """
     code = as_code(code)
     m = jnp.asarray(m)
+    if isinstance(code, FittedCode):
+        return code.wire_bits(m, jnp.zeros_like(m) if prev is None else prev, crc)
     if m.ndim == 0:
         m = m[None]
     c = m.shape[-1]
@@ -154,7 +211,7 @@ def wire_bits(m: jax.Array, code: Code | str = "paper", *, crc: bool = True) -> 
     else:
         present = m != 0
         if code.name == "paper":
-            per_element = 2 * paper_length(m)
+            per_element = 2 * paper_length(code.mapped(m))
         else:
             per_element = jnp.where(present, code.fixed_width, 0)
         body = c + per_element.sum(-1, dtype=jnp.int32)
@@ -198,14 +255,17 @@ def _np_bit_length(x: np.ndarray) -> np.ndarray:
     return out
 
 
-def encode(m, code: Code | str = "paper", *, crc: bool = True) -> bytes:
+def encode(m, code: Code | FittedCode | str = "paper", *, crc: bool = True, prev=None) -> bytes:
     """Pack one link's message elements into a packet of bytes (format: module docstring).
 
     ``m``: integer symbols in [0, levels] (any shape, flattened in C order, at most
     :data:`MAX_ELEMENTS`), or floats for ``float32``. Returns ``b""`` when every element is
-    null. Raises ``ValueError`` for symbols out of range.
+    null. Raises ``ValueError`` for symbols out of range. ``prev``: the link's previous
+    message, for a fitted code (default: all nulls; ignored by the other codes).
     """
     code = as_code(code)
+    if isinstance(code, FittedCode):
+        return code.encode(m, prev, crc)
     flat = _check_symbols(m, code)
     if flat.size > MAX_ELEMENTS:
         raise ValueError(f"a packet carries at most {MAX_ELEMENTS} elements, got {flat.size}")
@@ -218,6 +278,10 @@ def encode(m, code: Code | str = "paper", *, crc: bool = True) -> bytes:
         present = flat != 0
         if not present.any():
             return b""
+        if code.remap:
+            if flat.size % len(code.remap):
+                raise ValueError(f"a remapped code's links have {len(code.remap)} elements")
+            flat = code.mapped(flat.reshape(-1, len(code.remap))).reshape(-1)
         values = flat[present]
         if code.name == "paper":
             # L - 1 zeros, a one, the L-bit paper codeword: m + 1 written in 2 L bits.
@@ -247,14 +311,17 @@ def _check_shape(shape) -> tuple[int, ...]:
     return dims
 
 
-def decode(data: bytes, code: Code | str, shape, *, crc: bool = True) -> np.ndarray:
+def decode(
+    data: bytes, code: Code | FittedCode | str, shape, *, crc: bool = True, prev=None
+) -> np.ndarray:
     """Unpack a packet made by :func:`encode` into an array of the agreed ``shape``.
 
     Returns int64 symbols (float32 values for ``float32``); ``b""`` decodes to all nulls.
     Raises :class:`PacketError` when the packet is truncated, too long, fails its checksum,
     holds an invalid codeword, symbols outside [0, levels], non-zero padding or a non-canonical
     encoding, or cannot hold ``shape`` (checked before allocating). Time linear in
-    ``len(data)``.
+    ``len(data)``. ``prev``: the receiver's previous message on this link, for a fitted code
+    (default: all nulls; a packet coded with another previous message fails its CRC).
     """
     code = as_code(code)
     if not isinstance(data, (bytes, bytearray, memoryview)):
@@ -262,6 +329,15 @@ def decode(data: bytes, code: Code | str, shape, *, crc: bool = True) -> np.ndar
     data = bytes(data)
     shape = _check_shape(shape)
     count = math.prod(shape)
+    if isinstance(code, FittedCode):
+        if count != code.elements:
+            raise PacketError(f"a fitted code's link has {code.elements} elements, shape {shape}")
+        try:
+            return code.decode(data, prev, crc).reshape(shape)
+        except PacketError:
+            raise
+        except ValueError as e:
+            raise PacketError(str(e)) from None
     dtype = np.float32 if code.name == "float32" else np.int64
     if count > MAX_ELEMENTS:
         raise PacketError(f"claimed shape {shape} has {count} elements, over {MAX_ELEMENTS}")
@@ -285,6 +361,10 @@ def decode(data: bytes, code: Code | str, shape, *, crc: bool = True) -> np.ndar
         out = _decode_float32(body, count)
     else:
         out = _decode_symbols(body, code, count)
+        if code.remap:
+            if count % len(code.remap):
+                raise PacketError(f"a remapped code's links have {len(code.remap)} elements")
+            out = code.unmapped(out.reshape(-1, len(code.remap))).reshape(-1)
     return out.reshape(shape)
 
 
@@ -352,6 +432,6 @@ def _decode_symbols(body: bytes, code: Code, count: int) -> np.ndarray:
     return out
 
 
-def packet_bits(m, code: Code | str = "paper", *, crc: bool = True) -> int:
+def packet_bits(m, code: Code | FittedCode | str = "paper", *, crc: bool = True, prev=None) -> int:
     """Size in bits of the packet :func:`encode` makes for ``m`` (padding and CRC included)."""
-    return 8 * len(encode(m, code, crc=crc))
+    return 8 * len(encode(m, code, crc=crc, prev=prev))

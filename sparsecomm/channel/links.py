@@ -15,6 +15,9 @@ many small ones inside the time loop).
 from __future__ import annotations
 
 import dataclasses
+import functools
+import os
+from pathlib import Path
 from typing import NamedTuple
 
 import jax
@@ -22,11 +25,13 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import gammaln
 
-from sparsecomm.channel.codes import CODE_NAMES, Code, payload_bits, wire_bits
-from sparsecomm.channel.penalty import bit_penalty
+from sparsecomm.channel.codes import CODE_NAMES, Code, frequency_remap, payload_bits, wire_bits
+from sparsecomm.channel.fitted import FittedCode
+from sparsecomm.channel.penalty import bit_penalty, expected_bits
 from sparsecomm.channel.quantizer import check_levels, dither, dither_key, quantize_dithered
 
 CHANNEL_MODES = ("discrete", "continuous", "off", "reinforced")
+CHANNEL_CODES = (*CODE_NAMES[:2], "fitted", "remapped")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,8 +52,16 @@ class ChannelConfig:
     code: str = "paper"
     """Code used to count payload bits (and frame them on the wire) for the ``discrete`` and
     ``reinforced`` modes:
-    ``paper`` (the paper's variable-length code, Elias-gamma framing) or ``fixed`` (fixed-width,
-    a baseline). SPEC section 2."""
+    ``paper`` (the paper's variable-length code, Elias-gamma framing), ``fixed`` (fixed-width,
+    a baseline), ``fitted`` (a code fitted to a trained team's symbols, read from
+    ``code_file``: payload bits and the penalty stay the paper's, wire bits are the fitted
+    code's packets; ``sparsecomm.channel.fitted``) or ``remapped`` (a learned code: the paper's
+    code with each element's symbols ranked by how often the team of ``code_file`` sends them,
+    the most frequent getting the shortest codeword; payload bits and the penalty, the exact
+    expected codeword bits, price the remapped lengths; ``Code.remap``). SPEC section 2."""
+    code_file: str = ""
+    """``code = fitted`` or ``remapped`` only: the JSON file of a fitted code (``sparsecomm
+    fit-code``). A fitted code's SHA-256 fingerprint is checked by every packet's CRC."""
     bit_cost: float = 0.0
     """``reinforced`` mode only: reward subtracted from agent i at step t per payload bit it
     sends (paper reward units, scaled by ``reward_scale`` like the task reward; not included in
@@ -62,21 +75,71 @@ class ChannelConfig:
         check_levels(self.levels, "ChannelConfig.levels")
         if not isinstance(self.num_elements, int) or self.num_elements < 1:
             raise _bad("num_elements", self.num_elements, "an integer >= 1")
-        if self.code not in CODE_NAMES[:2]:
-            raise _bad("code", self.code, f"one of {CODE_NAMES[:2]}")
+        if self.code not in CHANNEL_CODES:
+            raise _bad("code", self.code, f"one of {CHANNEL_CODES}")
+        if (self.code in ("fitted", "remapped")) != bool(self.code_file):
+            raise _bad(
+                "code_file",
+                self.code_file,
+                "a fitted code's JSON file exactly when code is 'fitted' or 'remapped'",
+            )
+        if self.code_file:
+            fitted = load_code(self.code_file)
+            if (fitted.levels, fitted.elements) != (self.levels, self.num_elements):
+                raise _bad(
+                    "code_file",
+                    self.code_file,
+                    f"a code for levels {self.levels} and {self.num_elements} elements (it has "
+                    f"levels {fitted.levels} and {fitted.elements} elements)",
+                )
         if not (self.bit_cost >= 0 and self.bit_cost < float("inf")):
             raise _bad("bit_cost", self.bit_cost, "finite and >= 0")
 
     @property
-    def code_obj(self) -> Code:
-        return Code("float32" if self.mode == "continuous" else self.code, self.levels)
+    def code_obj(self) -> Code | FittedCode:
+        if self.mode == "continuous":
+            return Code("float32", self.levels)
+        if self.code == "fitted":
+            return load_code(self.code_file)
+        if self.code == "remapped":
+            counts = np.asarray(load_code(self.code_file).symbol_counts).sum(1)
+            return Code("paper", self.levels, frequency_remap(counts))
+        return Code(self.code, self.levels)
+
+    def penalty(self, z: jax.Array) -> jax.Array:
+        """The differentiable bit cost of each element of signals ``z`` (..., C): the paper's
+        ``log2(levels z + 1)``, or for a learned (``remapped``) code the exact expected bits
+        of its codewords (``channel.expected_bits``)."""
+        code = self.code_obj
+        if isinstance(code, Code) and code.remap:
+            return expected_bits(z, self.levels, code.lengths())
+        return bit_penalty(z, self.levels)
 
     def max_bits_per_step(self, num_agents: int) -> int:
         """The most payload bits a team of ``num_agents`` can send in one step: every element of
         every link at the code's longest codeword."""
         code = self.code_obj
+        if code.name == "fitted" or (code.name == "paper" and code.remap):
+            code = Code("paper", self.levels)  # payload: the paper's count (of the remapped)
         per_element = code.max_paper_length if code.name == "paper" else code.fixed_width
         return num_agents * (num_agents - 1) * self.num_elements * per_element
+
+
+@functools.lru_cache(maxsize=8)
+def _load_code(path: str, mtime_ns: int, size: int) -> FittedCode:
+    return FittedCode.from_json(Path(path).read_text())
+
+
+def load_code(path: str) -> FittedCode:
+    """The fitted code in the JSON file ``path`` (read once while the file is unchanged)."""
+    try:
+        st = os.stat(path)
+    except OSError as e:
+        raise _bad("code_file", path, f"a readable fitted-code JSON file ({e.strerror})") from None
+    try:
+        return _load_code(str(path), st.st_mtime_ns, st.st_size)
+    except ValueError as e:
+        raise _bad("code_file", path, f"a valid fitted-code JSON file ({e})") from None
 
 
 def _bad(name: str, value, allowed: str) -> ValueError:
@@ -141,26 +204,30 @@ class Sent(NamedTuple):
     wire: jax.Array  # (B,) bits on the wire: every link's packet, framing and CRC included
     link: jax.Array  # (B, K, K-1) payload bits of each link, by sender and slot
     log_prob: jax.Array  # (B, K) log-prob of each sender's symbols ("reinforced"; else 0)
+    symbols: jax.Array  # (B, K, K-1, C) int32 symbols sent (0, the null, for "off"/"continuous")
 
 
-def transmit(cfg: ChannelConfig, z: jax.Array, u=None, keys=None, t=None) -> Sent:
+def transmit(cfg: ChannelConfig, z: jax.Array, u=None, keys=None, t=None, prev=None) -> Sent:
     """Send every link of a batch through the channel, in any mode.
 
     ``z`` (B, K, K-1, C) the signals in [0, 1]; ``u`` (B, K, K-1, C) their dither
     (:func:`link_dither`; the ``discrete`` mode needs it); ``keys`` (B,) the episodes' channel
-    keys and ``t`` the step (the ``reinforced`` mode samples its symbols with them).
+    keys and ``t`` the step (the ``reinforced`` mode samples its symbols with them); ``prev``
+    (B, K, K-1, C) each link's symbols at the previous step (``Sent.symbols``; a fitted code's
+    wire bits depend on them; default all nulls).
     """
     b, k, r, c = z.shape
     zeros_b = jnp.zeros((b,), jnp.float32)
     no_log_prob = jnp.zeros((b, k), jnp.float32)
     if cfg.mode == "off":
         z0 = jnp.zeros_like(z)
-        return Sent(z0, zeros_b, zeros_b, zeros_b, jnp.zeros((b, k, r), jnp.float32), no_log_prob)
+        link = jnp.zeros((b, k, r), jnp.float32)
+        return Sent(z0, zeros_b, zeros_b, zeros_b, link, no_log_prob, jnp.zeros(z.shape, jnp.int32))
     if cfg.mode == "continuous":
         link = jnp.full((b, k, r), 32.0 * c)
         total = jnp.full((b,), 32.0 * c * k * r)
         wire = wire_bits(z, cfg.code_obj).sum((-2, -1)).astype(jnp.float32)
-        return Sent(z, zeros_b, total, wire, link, no_log_prob)
+        return Sent(z, zeros_b, total, wire, link, no_log_prob, jnp.zeros(z.shape, jnp.int32))
     if cfg.mode == "reinforced":
         if keys is None or t is None:
             raise ValueError("ChannelConfig.mode 'reinforced' needs the episodes' keys and t")
@@ -172,9 +239,9 @@ def transmit(cfg: ChannelConfig, z: jax.Array, u=None, keys=None, t=None) -> Sen
         log_prob = no_log_prob
     code = cfg.code_obj
     link = payload_bits(m, code).sum(-1).astype(jnp.float32)
-    wire = wire_bits(m, code).sum((-2, -1)).astype(jnp.float32)  # (B, K, K-1) packets -> (B,)
-    penalty = bit_penalty(z, cfg.levels).sum((-3, -2, -1))
-    return Sent(z_hat, penalty, link.sum((-2, -1)), wire, link, log_prob)
+    wire = wire_bits(m, code, prev=prev).sum((-2, -1)).astype(jnp.float32)  # packets -> (B,)
+    penalty = cfg.penalty(z).sum((-3, -2, -1))
+    return Sent(z_hat, penalty, link.sum((-2, -1)), wire, link, log_prob, m.astype(jnp.int32))
 
 
 def _sample_symbols(cfg: ChannelConfig, keys: jax.Array, t, z: jax.Array):

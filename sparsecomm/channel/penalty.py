@@ -14,7 +14,7 @@ import jax.numpy as jnp
 
 from sparsecomm.channel.quantizer import check_levels, check_unit_interval
 
-__all__ = ["bit_penalty"]
+__all__ = ["bit_penalty", "expected_bits"]
 
 
 def bit_penalty(z: jax.Array, levels: int) -> jax.Array:
@@ -22,3 +22,25 @@ def bit_penalty(z: jax.Array, levels: int) -> jax.Array:
     levels = check_levels(levels)
     check_unit_interval(z)
     return jnp.log2(levels * jnp.asarray(z, jnp.float32) + 1.0)
+
+
+def expected_bits(z: jax.Array, levels: int, lengths) -> jax.Array:
+    """Exact expected codeword bits of dithered symbols of ``z`` (..., C) under a code whose
+    element k spends ``lengths[k, m]`` bits on symbol m (``(C, levels + 1)``, e.g. a learned
+    code's ``Code.lengths()``).
+
+    With the dither, ``m = floor(levels z) + 1`` with probability ``f``, the fractional part of
+    ``levels z``, else ``floor(levels z)``, so the expectation is ``(1 - f) lengths[lo] +
+    f lengths[lo + 1]``: piecewise linear in z, its gradient the price of moving toward the
+    next symbol (0 where neighbouring symbols cost the same). For the paper's code it is the
+    quantity ``log2(levels z + 1)`` bounds from above.
+    """
+    levels = check_levels(levels)
+    check_unit_interval(z)
+    x = levels * jnp.asarray(z, jnp.float32)
+    lo = jnp.clip(jnp.floor(jax.lax.stop_gradient(x)), 0, levels).astype(jnp.int32)
+    hi = jnp.minimum(lo + 1, levels)
+    frac = x - lo
+    table = jnp.asarray(lengths, jnp.float32)
+    k = jnp.arange(table.shape[0])
+    return (1.0 - frac) * table[k, lo] + frac * table[k, hi]
