@@ -45,6 +45,7 @@ from sparsecomm.channel.links import (
     step_dither,
     transmit,
 )
+from sparsecomm.channel.noise import NoiseConfig, NoisyLink, receive
 from sparsecomm.channel.penalty import bit_penalty, expected_bits
 from sparsecomm.channel.quantizer import (
     dequantize,
@@ -59,6 +60,8 @@ __all__ = [
     "CODE_NAMES",
     "GATES",
     "MAX_ELEMENTS",
+    "NoiseConfig",
+    "NoisyLink",
     "ChannelConfig",
     "Code",
     "FittedCode",
@@ -85,6 +88,7 @@ __all__ = [
     "payload_bits",
     "quantize",
     "quantize_dithered",
+    "receive",
     "step_dither",
     "transmit",
     "wire_bits",

@@ -1,0 +1,236 @@
+"""Noise on the wire (channel/noise.py): each model's empirical rates match its parameters, no
+noise changes nothing, and the receiver never accepts a wrong message.
+
+Statistical checks use fixed seeds and a tolerance of 5 standard errors (a false failure has
+probability ~6e-7 per check if the seed were redrawn); where steps are correlated (the burst
+channel) the standard error is inflated by the chain's autocorrelation, as noted there.
+"""
+
+import re
+
+import numpy as np
+import pytest
+
+from sparsecomm import channel
+from sparsecomm.channel.noise import NoiseConfig, NoisyLink, flip_bits, receive
+
+LEVELS = 15
+SHAPE = (10,)
+
+
+def _bits(packets) -> np.ndarray:
+    return np.unpackbits(np.frombuffer(b"".join(packets), np.uint8))
+
+
+def _run(config: NoiseConfig, packets, seed=0) -> list:
+    link = NoisyLink(config, np.random.default_rng(seed))
+    return [link.send(p) for p in packets]
+
+
+def _random_packets(n: int, size: int, seed: int) -> list[bytes]:
+    rng = np.random.default_rng(seed)
+    return [rng.bytes(size) for _ in range(n)]
+
+
+def test_symmetric_flips_match_p():
+    p = 0.05
+    sent = _random_packets(4000, 32, seed=1)
+    got = _run(NoiseConfig(flip=p), sent, seed=2)
+    assert [len(g) for g in got] == [len(s) for s in sent]
+    flipped = _bits(sent) ^ _bits(got)
+    se = np.sqrt(p * (1 - p) / flipped.size)  # independent bits: binomial
+    assert abs(flipped.mean() - p) < 5 * se
+
+
+def test_asymmetric_flips_match_each_direction():
+    p01, p10 = 0.1, 0.05  # AAAI 2020's rates
+    sent = _random_packets(4000, 32, seed=3)
+    before, after = _bits(sent), _bits(_run(NoiseConfig(flip_01=p01, flip_10=p10), sent, seed=4))
+    for bit, p in ((0, p01), (1, p10)):
+        rate = (after[before == bit] != bit).mean()
+        se = np.sqrt(p * (1 - p) / (before == bit).sum())
+        assert abs(rate - p) < 5 * se, bit
+
+
+def test_flip_bits_extremes_and_no_draw_at_zero():
+    rng = np.random.default_rng(0)
+    data = bytes([0b10100101, 0xFF, 0x00])
+    assert flip_bits(data, rng, 1.0, 1.0) == bytes(b ^ 0xFF for b in data)
+    assert flip_bits(data, rng, 1.0, 0.0) == b"\xff\xff\xff"
+    assert flip_bits(data, rng, 0.0, 1.0) == b"\x00\x00\x00"
+    state = rng.bit_generator.state
+    assert flip_bits(data, rng, 0.0, 0.0) == data and flip_bits(b"", rng, 0.5, 0.5) == b""
+    assert rng.bit_generator.state == state
+
+
+def test_erasure_rate_and_silence_is_never_lost():
+    q = 0.2
+    sent = _random_packets(10_000, 8, seed=5)
+    sent[::5] = [b""] * len(sent[::5])  # every fifth step silent
+    got = _run(NoiseConfig(erasure=q), sent, seed=6)
+    lost = np.array([g is None for g, s in zip(got, sent, strict=True) if s])
+    assert all(g == b"" for g, s in zip(got, sent, strict=True) if not s)
+    assert all(g == s for g, s in zip(got, sent, strict=True) if g is not None)
+    se = np.sqrt(q * (1 - q) / lost.size)
+    assert abs(lost.mean() - q) < 5 * se
+
+
+def test_gilbert_elliott_share_flip_rate_and_bursts():
+    # Faster-mixing than the defaults so that 20,000 steps pin the rates down: autocorrelation
+    # rho = 1 - g2b - b2g = 0.75 between steps, so the standard error of a mean over steps is
+    # the independent one times sqrt((1 + rho) / (1 - rho)) = sqrt(7) (exact for a function
+    # of the state; conservative for the flip rate, whose within-state noise is independent).
+    g2b, b2g, f_good, f_bad = 0.05, 0.2, 0.001, 0.3
+    cfg = NoiseConfig(
+        burst=True,
+        burst_good_to_bad=g2b,
+        burst_bad_to_good=b2g,
+        burst_flip_good=f_good,
+        burst_flip_bad=f_bad,
+    )
+    share = g2b / (g2b + b2g)
+    assert cfg.burst_bad_share == pytest.approx(share)
+    inflation = np.sqrt((1 + 0.75) / (1 - 0.75))
+    n, size = 20_000, 16
+    sent = _random_packets(n, size, seed=7)
+    sent[::4] = [b""] * len(sent[::4])  # silent steps move the chain too
+    link = NoisyLink(cfg, np.random.default_rng(8))
+    bad, got = [], []
+    for packet in sent:
+        bad.append(link.bad)
+        got.append(link.send(packet))
+    bad = np.array(bad)
+    assert abs(bad.mean() - share) < 5 * inflation * np.sqrt(share * (1 - share) / n)
+
+    # Per-bit flip rate over the packets sent: the stationary mixture of the two states.
+    on = np.array([bool(s) for s in sent])
+    flips = np.array(
+        [(_bits([s]) ^ _bits([g])).mean() if s else 0.0 for s, g in zip(sent, got, strict=True)]
+    )
+    mixture = share * f_bad + (1 - share) * f_good
+    spread = share * (1 - share) * (f_bad - f_good) ** 2 * inflation**2 + mixture / (8 * size)
+    assert abs(flips[on].mean() - mixture) < 5 * np.sqrt(spread / on.sum())
+
+    # Bursts: a corrupted packet is followed by another far more often than packets are
+    # corrupted (expected ~0.61 against ~0.30 here; standard errors ~0.02).
+    corrupt = flips > 0
+    pairs = on[:-1] & on[1:]
+    marginal = corrupt[on].mean()
+    after_corrupt = corrupt[1:][pairs & corrupt[:-1]].mean()
+    assert after_corrupt > marginal + 0.15, (after_corrupt, marginal)
+
+
+def test_burst_defaults_and_silent_steps():
+    cfg = NoiseConfig(burst=True)
+    assert cfg.burst_bad_share == pytest.approx(1 / 11) and not cfg.clean
+    link = NoisyLink(cfg, np.random.default_rng(0))
+    # Silence passes unchanged while the chain moves: over 2,000 silent steps it visits both.
+    states = set()
+    for _ in range(2000):
+        states.add(link.bad)
+        assert link.send(b"") == b""
+    assert states == {False, True}
+
+
+@pytest.mark.parametrize("delay", [0, 1, 3])
+def test_delay_is_exact(delay):
+    sent = [bytes([t]) * (t % 3) for t in range(1, 21)]  # some silent (b"")
+    got = _run(NoiseConfig(delay=delay), sent)
+    assert got[:delay] == [None] * delay
+    assert got[delay:] == sent[: len(sent) - delay]
+
+
+def test_no_noise_is_bit_identical():
+    cfg = NoiseConfig()
+    assert cfg.clean and NoiseConfig(on_drop="last").clean
+    assert NoiseConfig(burst=True, burst_flip_bad=0.0).clean
+    assert not NoiseConfig(delay=1).clean and not NoiseConfig(erasure=0.01).clean
+    rng = np.random.default_rng(9)
+    messages = rng.integers(0, LEVELS + 1, (500, *SHAPE)) * (rng.random((500, 1)) < 0.8)
+    link_rng = np.random.default_rng(10)
+    state = link_rng.bit_generator.state
+    link = NoisyLink(cfg, link_rng)
+    for m in messages:
+        packet = channel.encode(m, "paper")
+        assert link.send(packet) == packet
+        message, ok = receive(packet, "paper", SHAPE)
+        assert ok and np.array_equal(message, m)
+    assert link_rng.bit_generator.state == state  # a clean link draws nothing
+
+
+@pytest.mark.parametrize("on_drop", ["null", "last"])
+@pytest.mark.parametrize("p", [0.05, 0.005])
+def test_receive_under_flips_never_accepts_a_wrong_message(p, on_drop):
+    rng = np.random.default_rng(11)
+    n = 1500
+    messages = rng.integers(0, LEVELS + 1, (n, *SHAPE)) * (rng.random((n, 1)) < 0.9)
+    link = NoisyLink(NoiseConfig(flip=p, on_drop=on_drop), np.random.default_rng(12))
+    last, failed, expected = None, [], []
+    for m in messages:
+        packet = channel.encode(m, "paper")
+        message, ok = receive(link.send(packet), "paper", SHAPE, last, on_drop)
+        if ok:  # accepted: exactly what was sent (a corrupted packet fails the CRC-32)
+            np.testing.assert_array_equal(message, m)
+            last = message
+        else:
+            fallback = np.zeros(SHAPE) if last is None or on_drop == "null" else last
+            np.testing.assert_array_equal(message, fallback)
+        assert message.dtype == np.int64 and message.shape == SHAPE
+        failed.append(not ok)
+        expected.append(1 - (1 - p) ** (8 * len(packet)))  # any flipped bit fails
+    expected = np.array(expected)
+    se = np.sqrt((expected * (1 - expected)).sum()) / n  # independent, unequal Bernoullis
+    assert abs(np.mean(failed) - expected.mean()) < 5 * se
+
+
+def test_receive_losses_and_fallbacks():
+    m = np.arange(10) % 4
+    message, ok = receive(None, "paper", SHAPE)  # lost
+    assert not ok and message.dtype == np.int64 and message.shape == SHAPE and not message.any()
+    message, ok = receive(None, "paper", SHAPE, m, "last")
+    assert not ok and np.array_equal(message, m) and message is not m
+    message, ok = receive(None, "paper", SHAPE, None, "last")  # nothing good yet: the null
+    assert not ok and not message.any()
+    message, ok = receive(b"\x00\x01", "float32", SHAPE)  # malformed
+    assert not ok and message.dtype == np.float32 and not message.any()
+    message, ok = receive(b"", "float32", SHAPE)  # silence is a message
+    assert ok and message.dtype == np.float32 and not message.any()
+    with pytest.raises(ValueError, match="on_drop"):
+        receive(b"", "paper", SHAPE, on_drop="zero")
+    with pytest.raises(ValueError, match="shape"):
+        receive(None, "paper", SHAPE, np.zeros(3), "last")
+
+
+@pytest.mark.parametrize(
+    "field, kwargs",
+    [
+        ("flip", {"flip": -0.1}),
+        ("flip_01", {"flip_01": 1.5}),
+        ("flip_10", {"flip_10": float("nan")}),
+        ("erasure", {"erasure": "0.1"}),
+        ("burst_good_to_bad", {"burst_good_to_bad": 2}),
+        ("burst_bad_to_good", {"burst_bad_to_good": -1}),
+        ("burst_flip_good", {"burst_flip_good": 1.01}),
+        ("burst_flip_bad", {"burst_flip_bad": True}),
+        ("burst", {"burst": "yes"}),
+        ("delay", {"delay": -1}),
+        ("delay", {"delay": 1.5}),
+        ("delay", {"delay": True}),
+        ("on_drop", {"on_drop": "zero"}),
+        ("flip", {"flip": 0.1, "flip_01": 0.1}),
+        ("burst", {"burst": True, "flip_10": 0.1}),
+    ],
+)
+def test_bad_configs_name_the_field(field, kwargs):
+    with pytest.raises(ValueError, match=rf"NoiseConfig\.{re.escape(field)}\b"):
+        NoiseConfig(**kwargs)
+
+
+def test_good_configs_are_accepted_and_hashable():
+    configs = {
+        NoiseConfig(flip_01=0.1, flip_10=0.05),
+        NoiseConfig(delay=np.int64(2), erasure=1, on_drop="last"),
+        NoiseConfig(burst=True, burst_good_to_bad=0, burst_bad_to_good=0),
+    }
+    assert len(configs) == 3
+    assert NoiseConfig(flip=0.2).flip_rates == (0.2, 0.2)
