@@ -17,6 +17,7 @@ import numpy as np
 from flax import serialization
 
 from sparsecomm import checkpoint
+from sparsecomm.channel import NoiseConfig
 from sparsecomm.configs import ILConfig, RLConfig, check_budget_fits, from_dict, to_dict
 from sparsecomm.envs.navigation import NavigationEnv
 from sparsecomm.envs.render import render_frames, write_gif
@@ -114,6 +115,12 @@ class Eval:
     out: Path | None = None
     """JSON file to write (default: ``<run>/eval.json``; ``runs/pretrained/eval.json`` for the
     shipped team)."""
+    own_noise: bool = True
+    """Evaluate under the channel noise the run was trained with; ``--no-own-noise``: under
+    ``--noise.*`` instead (clean unless given)."""
+    noise: NoiseConfig = NoiseConfig()
+    """With ``--no-own-noise``: the channel noise to evaluate under (``--noise.erasure 0.2``,
+    ``--noise.flip 0.01``, ...; ``sparsecomm.channel.noise``)."""
 
     def __post_init__(self):
         _at_least(self, episodes=1)
@@ -395,7 +402,10 @@ def _run_and_outputs(run: Path | None) -> tuple[Path, Path]:
 
 def evaluate(args: Eval) -> dict:
     run, outputs = _run_and_outputs(args.run)
-    _, trainer, runs, actor = load_run(run)
+    config, trainer, runs, actor = load_run(run)
+    if not args.own_noise:
+        channel = dataclasses.replace(config.channel, noise=args.noise)
+        trainer = learner_for(dataclasses.replace(config, channel=channel))
     results = evaluate_runs(trainer, runs, actor, args.episodes, args.greedy)
     out = args.out or outputs / "eval.json"
     out.parent.mkdir(parents=True, exist_ok=True)

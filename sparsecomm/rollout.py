@@ -63,6 +63,7 @@ class Trajectory:
     env_states: Any = None  # batched NavState per step (only when ``keep_states``)
     hidden: Any = None  # (T, B, K, H) GRU states the messages came from (only ``keep_hidden``)
     symbols: Any = None  # (T, B, K, K-1, C) int32 symbols of each link (only ``keep_symbols``)
+    lost: Any = None  # (T, B) packets the receivers lost (only with ``ChannelConfig.noise``)
 
 
 def rollout(
@@ -119,15 +120,19 @@ def rollout(
     if expert is not None:
         noise["expert"] = jax.random.split(k_exp, num_steps)
         noise["mix"] = jax.random.uniform(k_mix, (num_steps, num_envs, 1))
+    wire = _Wire(channel_cfg, key, num_envs, k, num_steps) if _noisy(channel_cfg) else None
+    if wire is not None:
+        noise["loss"] = wire.step_keys
     # Episodes are independent: split them over the mesh's episodes axis, if there is one.
     batched = ("env", "gumbel", "dither", "mix")
     noise.update(split_episodes({n: v for n, v in noise.items() if n in batched}, axis=1))
     state, obs, msgs, prev, carry, chan_keys = split_episodes(
         (state, obs, msgs, prev, carry, chan_keys), axis=0
     )
+    heard = None if wire is None else split_episodes(wire.init, axis=0)
 
     def step(loop, noise):
-        state, obs, msgs, carry, expert_carry, prev = loop
+        state, obs, msgs, carry, expert_carry, prev, heard = loop
         t = noise["t"]
         carry, logits, z = team.act(actor_params, carry, obs, msgs)
         log_probs = jax.nn.log_softmax(logits)
@@ -142,7 +147,10 @@ def rollout(
         else:
             expert_actions = jnp.full(actions.shape, -1)
         sent = channel.transmit(channel_cfg, z, noise["dither"], chan_keys, t, prev)
-        next_msgs = channel.deliver(sent.z_hat)
+        received, lost = sent.z_hat, None
+        if wire is not None:  # packets lost, late, or replaced by the null or last message
+            received, heard, lost = wire.step(noise["loss"], sent, noise["dither"], heard)
+        next_msgs = channel.deliver(received)
         global_state = jax.vmap(env.global_state)(state)
         valid = ~state.done
         next_obs, next_state, rewards, dones, info = jax.vmap(env.step)(
@@ -167,22 +175,68 @@ def rollout(
             env_states=state if keep_states else None,
             hidden=jax.lax.stop_gradient(carry) if keep_hidden else None,
             symbols=sent.symbols if keep_symbols else None,
+            lost=lost,
         )
-        loop = (next_state, next_obs, next_msgs, carry, expert_carry, sent.symbols)
+        loop = (next_state, next_obs, next_msgs, carry, expert_carry, sent.symbols, heard)
         return loop, record
 
     if remat:
         step = jax.checkpoint(step)
-    init = (state, obs, msgs, carry, expert_carry, prev)
+    init = (state, obs, msgs, carry, expert_carry, prev, heard)
     _, traj = jax.lax.scan(step, init, noise)
     return traj
 
 
+def _noisy(cfg: ChannelConfig) -> bool:
+    return not cfg.noise.clean and cfg.mode != "off"
+
+
+class _Wire:
+    """The noise between senders and receivers inside the scan (``ChannelConfig.noise``): which
+    packets are lost (``channel.noise.lost_packets``), what a receiver uses instead (the null
+    message, i.e. the reconstruction of all-null symbols, or its last good message), and the
+    delay line. Its keys come from ``fold_in(key, 7)``, outside the rollout's six splits, so a
+    clean channel keeps every other draw, and results, bit for bit."""
+
+    def __init__(self, cfg: ChannelConfig, key, num_envs: int, k: int, num_steps: int):
+        self.cfg, self.noise = cfg, cfg.noise
+        k_bad, k_steps = jax.random.split(jax.random.fold_in(key, 7))
+        self.step_keys = jax.random.split(k_steps, num_steps)
+        links = (num_envs, k, k - 1)
+        c, d = cfg.num_elements, self.noise.delay
+        self.init = {
+            "last": jnp.zeros((*links, c), jnp.float32),
+            "bad": channel.noise.initial_bad(k_bad, self.noise, links),
+            "queue": jnp.zeros((num_envs, d, k, k - 1, c), jnp.float32),
+            "queue_ok": jnp.zeros((num_envs, d, k, k - 1), bool),
+        }
+
+    def step(self, key, sent, u, heard):
+        lost, bad = channel.noise.lost_packets(key, self.noise, sent.link_wire, heard["bad"])
+        got, ok = sent.z_hat, ~lost
+        heard = {**heard, "bad": bad}
+        if self.noise.delay:  # what arrives now was sent ``delay`` steps ago
+            queue, queue_ok = heard["queue"], heard["queue_ok"]
+            got, ok = queue[:, 0], queue_ok[:, 0]
+            heard["queue"] = jnp.concatenate([queue[:, 1:], sent.z_hat[:, None]], 1)
+            heard["queue_ok"] = jnp.concatenate([queue_ok[:, 1:], ~lost[:, None]], 1)
+        if self.noise.on_drop == "last":
+            instead = heard["last"]
+        elif self.cfg.mode == "discrete":  # all-null symbols, reconstructed with this step's dither
+            instead = jax.lax.stop_gradient(-u / self.cfg.levels)
+        else:
+            instead = jnp.zeros_like(got)
+        got = jnp.where(ok[..., None], got, instead)
+        heard["last"] = jnp.where(ok[..., None], got, heard["last"])
+        return got, heard, lost.sum((-2, -1)).astype(jnp.float32)
+
+
 def episode_metrics(traj: Trajectory) -> dict[str, jax.Array]:
-    """Batch means of the SPEC section 6 metrics (rewards in the paper's units)."""
+    """Batch means of the SPEC section 6 metrics (rewards in the paper's units); with a noisy
+    channel also ``packets_lost_per_step``."""
     valid = traj.valid.astype(jnp.float32)
     steps = valid.sum()
-    return {
+    metrics = {
         "group_reward": (traj.rewards.sum(-1) * valid).sum(0).mean(),
         "episode_length": valid.sum(0).mean(),
         "success_rate": traj.success.any(0).astype(jnp.float32).mean(),
@@ -190,3 +244,6 @@ def episode_metrics(traj: Trajectory) -> dict[str, jax.Array]:
         "wire_bits_per_step": (traj.wire_bits * valid).sum() / steps,
         "penalty": (traj.penalty * valid).sum() / steps,
     }
+    if traj.lost is not None:
+        metrics["packets_lost_per_step"] = (traj.lost * valid).sum() / steps
+    return metrics

@@ -234,3 +234,111 @@ def test_good_configs_are_accepted_and_hashable():
     }
     assert len(configs) == 3
     assert NoiseConfig(flip=0.2).flip_rates == (0.2, 0.2)
+
+
+# -- under jit: the packets a rollout's receivers lose --------------------------------------
+
+
+def test_lost_packets_under_jit_match_erasure_flips_and_bursts():
+    import jax
+    import jax.numpy as jnp
+
+    from sparsecomm.channel.noise import initial_bad, lost_packets
+
+    n = 200_000
+    w = jnp.where(jnp.arange(n) % 4 == 0, 0.0, 40.0)  # a quarter silent: never lost
+    busy = np.asarray(w) > 0
+    for cfg, p in [
+        (NoiseConfig(erasure=0.2), 0.2),
+        (NoiseConfig(flip=0.01), 1 - 0.99**40),
+        (NoiseConfig(erasure=0.1, flip=0.01), 1 - 0.9 * 0.99**40),
+    ]:
+        lost, _ = lost_packets(jax.random.key(0), cfg, w, jnp.zeros(n, bool))
+        lost = np.asarray(lost)
+        assert not lost[~busy].any()
+        rate, se = lost[busy].mean(), np.sqrt(p * (1 - p) / busy.sum())
+        assert abs(rate - p) < 5 * se, (cfg, rate, p)
+    # bursts: the bad share stays at its stationary value, and losses come in runs
+    cfg = NoiseConfig(burst=True, burst_good_to_bad=0.05, burst_bad_to_good=0.2)
+    bad = initial_bad(jax.random.key(1), cfg, (20_000,))
+    step = jax.jit(lambda k, b: lost_packets(k, cfg, jnp.full(b.shape, 40.0), b))
+    shares, losses = [], []
+    for t in range(40):
+        lost, bad = step(jax.random.key(100 + t), bad)
+        shares.append(float(bad.mean()))
+        losses.append(np.asarray(lost))
+    assert abs(np.mean(shares) - 0.2) < 0.01  # 0.05 / (0.05 + 0.2)
+    losses = np.array(losses)
+    after_loss = losses[1:][losses[:-1]].mean()
+    assert after_loss > losses.mean() + 0.2, (after_loss, losses.mean())
+
+
+def test_rollout_under_erasure_loses_its_share_of_packets_and_delays_exactly(fast_compile):
+    import dataclasses
+
+    import jax
+
+    from sparsecomm.configs import RLConfig
+    from sparsecomm.envs.navigation import NavConfig
+    from sparsecomm.rl import make_train
+    from sparsecomm.rollout import rollout
+
+    cfg = RLConfig(env=NavConfig(max_steps=16), num_envs=64)
+    learner = make_train(cfg)
+    params = learner.init(jax.random.key(0), 0.0).params["actor"]
+
+    def play(noise, **kw):
+        ch = dataclasses.replace(cfg.channel, noise=noise)
+        return rollout(learner.team, learner.env, ch, params, jax.random.key(1), 64, **kw)
+
+    clean = play(NoiseConfig(), keep_symbols=True)
+    busy = (np.asarray(clean.symbols) != 0).any(-1).sum((2, 3))  # (T, B) packets sent
+    noisy = play(NoiseConfig(erasure=0.25), keep_symbols=True)
+    # the senders' first step is the same (nothing received yet), later steps differ
+    np.testing.assert_array_equal(noisy.symbols[0], clean.symbols[0])
+    lost = np.asarray(noisy.lost)
+    sent = (np.asarray(noisy.symbols) != 0).any(-1).sum((2, 3))
+    valid = np.asarray(noisy.valid)
+    rate = lost[valid].sum() / sent[valid].sum()
+    se = np.sqrt(0.25 * 0.75 / sent[valid].sum())
+    assert busy[valid].sum() > 1000 and abs(rate - 0.25) < 5 * se, rate
+    assert clean.lost is None
+    everything = play(NoiseConfig(erasure=1.0), keep_symbols=True)
+    sent_all = (np.asarray(everything.symbols) != 0).any(-1).sum((2, 3))
+    assert sent_all.sum() > 0
+    np.testing.assert_array_equal(np.asarray(everything.lost), sent_all)  # every packet lost
+
+
+def test_delay_line_delivers_what_was_sent_d_steps_before_and_null_until_then():
+    import jax
+    import jax.numpy as jnp
+
+    from sparsecomm.channel import ChannelConfig
+    from sparsecomm.rollout import _Wire
+
+    cfg = ChannelConfig(num_elements=2, noise=NoiseConfig(delay=2))
+    wire = _Wire(cfg, jax.random.key(0), 1, 3, 5)
+    heard = wire.init
+    sent_z = [jnp.full((1, 3, 2, 2), 0.1 * (t + 1)) for t in range(5)]
+    for t in range(5):
+        u = jnp.full((1, 3, 2, 2), 0.25)
+        sent = channel.Sent(sent_z[t], *[None] * 6, jnp.full((1, 3, 2), 24.0))
+        got, heard, lost = wire.step(wire.step_keys[t], sent, u, heard)
+        want = sent_z[t - 2] if t >= 2 else -u / cfg.levels  # null: all-null symbols
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-6)
+        assert float(lost.sum()) == 0
+
+
+def test_eval_command_can_evaluate_a_team_under_other_noise(tmp_path, fast_compile):
+    import json
+
+    from sparsecomm.cli import main
+    from sparsecomm.experiment import PRETRAINED
+
+    out = tmp_path / "eval.json"
+    args = ["eval", "--run", str(PRETRAINED), "--episodes", "16", "--out", str(out)]
+    main([*args, "--no-own-noise", "--noise.erasure", "1.0"])
+    lost = json.loads(out.read_text())["by_group"]["budget=16/0"]["packets_lost_per_step"]["mean"]
+    assert lost > 1.5  # two links, nearly always speaking: every packet lost
+    main(args)
+    assert "packets_lost_per_step" not in json.loads(out.read_text())["by_group"]["budget=16/0"]

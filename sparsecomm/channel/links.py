@@ -27,6 +27,7 @@ from jax.scipy.special import gammaln
 
 from sparsecomm.channel.codes import CODE_NAMES, Code, frequency_remap, payload_bits, wire_bits
 from sparsecomm.channel.fitted import FittedCode
+from sparsecomm.channel.noise import NoiseConfig
 from sparsecomm.channel.penalty import bit_penalty, expected_bits
 from sparsecomm.channel.quantizer import check_levels, dither, dither_key, quantize_dithered
 
@@ -62,6 +63,11 @@ class ChannelConfig:
     code_file: str = ""
     """``code = fitted`` or ``remapped`` only: the JSON file of a fitted code (``sparsecomm
     fit-code``). A fitted code's SHA-256 fingerprint is checked by every packet's CRC."""
+    noise: NoiseConfig = NoiseConfig()
+    """Noise on every link's packets (``sparsecomm.channel.noise``): bit flips, erasure, bursts,
+    delay; a packet with a flipped bit fails its CRC-32 and is lost, and the receiver uses the
+    null message or its last good one (``noise.on_drop``). Applied in training and evaluation
+    alike (``sparsecomm eval --noise.*`` evaluates a team under other noise). ours: none."""
     bit_cost: float = 0.0
     """``reinforced`` mode only: reward subtracted from agent i at step t per payload bit it
     sends (paper reward units, scaled by ``reward_scale`` like the task reward; not included in
@@ -205,6 +211,7 @@ class Sent(NamedTuple):
     link: jax.Array  # (B, K, K-1) payload bits of each link, by sender and slot
     log_prob: jax.Array  # (B, K) log-prob of each sender's symbols ("reinforced"; else 0)
     symbols: jax.Array  # (B, K, K-1, C) int32 symbols sent (0, the null, for "off"/"continuous")
+    link_wire: jax.Array  # (B, K, K-1) wire bits of each link's packet (0: silent)
 
 
 def transmit(cfg: ChannelConfig, z: jax.Array, u=None, keys=None, t=None, prev=None) -> Sent:
@@ -222,12 +229,14 @@ def transmit(cfg: ChannelConfig, z: jax.Array, u=None, keys=None, t=None, prev=N
     if cfg.mode == "off":
         z0 = jnp.zeros_like(z)
         link = jnp.zeros((b, k, r), jnp.float32)
-        return Sent(z0, zeros_b, zeros_b, zeros_b, link, no_log_prob, jnp.zeros(z.shape, jnp.int32))
+        m0 = jnp.zeros(z.shape, jnp.int32)
+        return Sent(z0, zeros_b, zeros_b, zeros_b, link, no_log_prob, m0, link)
     if cfg.mode == "continuous":
         link = jnp.full((b, k, r), 32.0 * c)
         total = jnp.full((b,), 32.0 * c * k * r)
-        wire = wire_bits(z, cfg.code_obj).sum((-2, -1)).astype(jnp.float32)
-        return Sent(z, zeros_b, total, wire, link, no_log_prob, jnp.zeros(z.shape, jnp.int32))
+        per_link = wire_bits(z, cfg.code_obj).astype(jnp.float32)
+        m0 = jnp.zeros(z.shape, jnp.int32)
+        return Sent(z, zeros_b, total, per_link.sum((-2, -1)), link, no_log_prob, m0, per_link)
     if cfg.mode == "reinforced":
         if keys is None or t is None:
             raise ValueError("ChannelConfig.mode 'reinforced' needs the episodes' keys and t")
@@ -239,9 +248,12 @@ def transmit(cfg: ChannelConfig, z: jax.Array, u=None, keys=None, t=None, prev=N
         log_prob = no_log_prob
     code = cfg.code_obj
     link = payload_bits(m, code).sum(-1).astype(jnp.float32)
-    wire = wire_bits(m, code, prev=prev).sum((-2, -1)).astype(jnp.float32)  # packets -> (B,)
+    per_link = wire_bits(m, code, prev=prev).astype(jnp.float32)  # (B, K, K-1) packets
     penalty = cfg.penalty(z).sum((-3, -2, -1))
-    return Sent(z_hat, penalty, link.sum((-2, -1)), wire, link, log_prob, m.astype(jnp.int32))
+    wire = per_link.sum((-2, -1))
+    return Sent(
+        z_hat, penalty, link.sum((-2, -1)), wire, link, log_prob, m.astype(jnp.int32), per_link
+    )
 
 
 def _sample_symbols(cfg: ChannelConfig, keys: jax.Array, t, z: jax.Array):

@@ -19,7 +19,8 @@ null message or the link's last good message (``on_drop``), reporting ``ok=False
 
 Randomness comes from a ``numpy.random.Generator`` given to each link, so a run is reproducible
 from its seed; a clean config (:attr:`NoiseConfig.clean`) draws nothing and changes nothing. The
-in-training (``jit``) counterpart is separate; this module is for deployment and tests.
+in-training counterpart, :func:`lost_packets` (``jit``), draws which packets a batch of links
+loses from their sizes; ``sparsecomm.rollout`` applies it when ``ChannelConfig.noise`` is set.
 """
 
 from __future__ import annotations
@@ -29,12 +30,22 @@ import dataclasses
 import numbers
 import operator
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 
 from sparsecomm.channel.codes import Code, PacketError, decode
 from sparsecomm.channel.fitted import FittedCode
 
-__all__ = ["ON_DROP", "NoiseConfig", "NoisyLink", "flip_bits", "receive"]
+__all__ = [
+    "ON_DROP",
+    "NoiseConfig",
+    "NoisyLink",
+    "flip_bits",
+    "initial_bad",
+    "lost_packets",
+    "receive",
+]
 
 ON_DROP = ("null", "last")
 
@@ -252,3 +263,43 @@ def receive(
     if last.shape != null.shape:
         raise ValueError(f"last has shape {last.shape}, the link's messages {null.shape}")
     return last, False
+
+
+# -- under jit: which packets a batch of links loses, for training and evaluation -------------
+
+
+def initial_bad(key: jax.Array, config: NoiseConfig, shape) -> jax.Array:
+    """Each link's burst state at an episode's start (bool, ``shape``): bad with the stationary
+    probability, as on the host (:class:`NoisyLink`); all good without bursts."""
+    if not config.burst:
+        return jnp.zeros(shape, bool)
+    return jax.random.uniform(key, shape) < config.burst_bad_share
+
+
+def lost_packets(key: jax.Array, config: NoiseConfig, wire_bits, bad) -> tuple:
+    """Which of a step's packets the receivers lose, and the burst states of the next step.
+
+    ``wire_bits`` (...): each link's packet size (0: silent, nothing to lose); ``bad`` (...): the
+    links' burst states. A packet is lost when it is erased (probability ``erasure``) or when any
+    of its bits flips (the CRC-32 then fails, but with probability ~2^-32): with flip
+    probabilities p01 and p10 that is ``1 - (1 - p01)^n0 (1 - p10)^n1`` for a packet of n0 zeros
+    and n1 ones. Under ``jit`` the bits themselves are not at hand, so ``n0 = n1 = W / 2`` (the
+    exact count for symmetric flips and bursts, an approximation for asymmetric flips; on real
+    bytes :class:`NoisyLink` flips the actual bits). Returns ``(lost, bad_next)``, bool.
+    """
+    w = jnp.asarray(wire_bits, jnp.float32)
+    k_erase, k_flip, k_burst = jax.random.split(key, 3)
+    if config.burst:
+        p = jnp.where(bad, config.burst_flip_bad, config.burst_flip_good)
+        p01 = p10 = p
+        u = jax.random.uniform(k_burst, w.shape)  # one draw per link: leave or enter the bad state
+        bad_next = jnp.where(bad, u >= config.burst_bad_to_good, u < config.burst_good_to_bad)
+    else:
+        p01, p10 = config.flip_rates
+        bad_next = bad
+    log_intact = (
+        0.5 * w * (jnp.log1p(-jnp.minimum(p01, 1 - 1e-7)) + jnp.log1p(-jnp.minimum(p10, 1 - 1e-7)))
+    )
+    flipped = jax.random.uniform(k_flip, w.shape) >= jnp.exp(log_intact)
+    erased = jax.random.uniform(k_erase, w.shape) < config.erasure
+    return (w > 0) & (erased | flipped), bad_next

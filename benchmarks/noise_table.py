@@ -1,0 +1,111 @@
+"""Success and bits of trained teams under channel noise (issue 18, docs/noise.md).
+
+Evaluates every run of each run folder under each noise setting (``sparsecomm.channel.noise``:
+packet erasure, symmetric bit flips, which make a packet fail its CRC-32, Gilbert-Elliott
+bursts; the receiver uses the null message for a lost packet, or its last good one), with the
+same evaluation episodes for every setting, and writes the rows and a figure.
+
+    python benchmarks/noise_table.py --runs runs/noise_clean runs/noise_erasure20 \
+        --out docs/results/noise/table.json
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import tyro  # noqa: E402
+
+from sparsecomm.channel import NoiseConfig  # noqa: E402
+from sparsecomm.experiment import evaluate_runs, learner_for, load_run  # noqa: E402
+from sparsecomm.reproduce.provenance import hardware  # noqa: E402
+
+SETTINGS = {
+    "clean": NoiseConfig(),
+    "erasure 0.1": NoiseConfig(erasure=0.1),
+    "erasure 0.2": NoiseConfig(erasure=0.2),
+    "erasure 0.4": NoiseConfig(erasure=0.4),
+    "erasure 0.2, last": NoiseConfig(erasure=0.2, on_drop="last"),
+    "flip 1e-3": NoiseConfig(flip=1e-3),
+    "flip 1e-2": NoiseConfig(flip=1e-2),
+    "flip 5e-2": NoiseConfig(flip=5e-2),
+    "burst": NoiseConfig(burst=True),
+}
+"""The noise settings, by name (bursts: the defaults, 1/11 of steps bad, flips 0.1 there)."""
+
+
+@dataclasses.dataclass
+class Args:
+    runs: tuple[Path, ...]
+    """Run folders (every run of each is evaluated)."""
+    settings: tuple[str, ...] = tuple(SETTINGS)
+    """Names of the noise settings to evaluate (keys of ``SETTINGS``)."""
+    episodes: int = 500
+    """Evaluation episodes per run and setting."""
+    out: Path | None = None
+    """JSON file for the rows (the figure goes beside it, ``.png``)."""
+
+
+def main(args: Args) -> list[dict]:
+    rows = []
+    for folder in args.runs:
+        config, _, runs, actor = load_run(folder)
+        trained = config.channel.noise
+        for name in args.settings:
+            channel = dataclasses.replace(config.channel, noise=SETTINGS[name])
+            learner = learner_for(dataclasses.replace(config, channel=channel))
+            result = evaluate_runs(learner, runs, actor, args.episodes)
+            for group, m in result["by_group"].items():
+                row = {
+                    "run": str(folder),
+                    "trained_under": dataclasses.asdict(trained),
+                    "group": group,
+                    "setting": name,
+                    "seeds": sum(1 for r in runs if r.group == group),
+                    **{k: m[k] for k in m},
+                }
+                rows.append(row)
+                s = m["success_rate"]
+                print(
+                    f"{folder} {group:>10} | {name:>17}: success {s['mean']:.3f} "
+                    f"[{s['ci_low']:.3f}, {s['ci_high']:.3f}] length "
+                    f"{m['episode_length']['mean']:.1f} bits {m['bits_per_step']['mean']:.1f} "
+                    f"lost/step {m.get('packets_lost_per_step', {'mean': 0.0})['mean']:.2f}"
+                )
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        payload = {"args": {**dataclasses.asdict(args)}, "rows": rows, "hardware": hardware()}
+        args.out.write_text(json.dumps(payload, indent=2, default=str))
+        figure(rows, args.out.with_suffix(".png"))
+    return rows
+
+
+def figure(rows: list[dict], path: Path) -> None:
+    """Success (mean and 95% CI) per noise setting, one line per trained team and group."""
+    settings = list(dict.fromkeys(r["setting"] for r in rows))
+    fig, ax = plt.subplots(figsize=(9, 4))
+    lines = dict.fromkeys((r["run"], r["group"]) for r in rows)
+    for i, (run, group) in enumerate(lines):
+        sel = {r["setting"]: r for r in rows if (r["run"], r["group"]) == (run, group)}
+        x = [j + 0.08 * (i - len(lines) / 2) for j, s in enumerate(settings) if s in sel]
+        s = [sel[name]["success_rate"] for name in settings if name in sel]
+        mean = [v["mean"] for v in s]
+        err = [[v["mean"] - v["ci_low"] for v in s], [v["ci_high"] - v["mean"] for v in s]]
+        ax.errorbar(x, mean, yerr=err, fmt="o-", capsize=3, label=f"{Path(run).name} {group}")
+    ax.set_xticks(range(len(settings)), settings, rotation=30, ha="right")
+    ax.set_ylabel("success rate (95% CI over seeds)")
+    ax.set_ylim(0, 1.05)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))
