@@ -27,16 +27,17 @@ from sparsecomm.reproduce.provenance import hardware  # noqa: E402
 
 SETTINGS = {
     "clean": NoiseConfig(),
-    "erasure 0.1": NoiseConfig(erasure=0.1),
-    "erasure 0.2": NoiseConfig(erasure=0.2),
-    "erasure 0.4": NoiseConfig(erasure=0.4),
+    "erasure 0.1": NoiseConfig(erasure=0.1, on_drop="null"),
+    "erasure 0.2": NoiseConfig(erasure=0.2, on_drop="null"),
+    "erasure 0.4": NoiseConfig(erasure=0.4, on_drop="null"),
     "erasure 0.2, last": NoiseConfig(erasure=0.2, on_drop="last"),
-    "flip 1e-3": NoiseConfig(flip=1e-3),
-    "flip 1e-2": NoiseConfig(flip=1e-2),
-    "flip 5e-2": NoiseConfig(flip=5e-2),
-    "burst": NoiseConfig(burst=True),
+    "flip 1e-3": NoiseConfig(flip=1e-3, on_drop="null"),
+    "flip 1e-2": NoiseConfig(flip=1e-2, on_drop="null"),
+    "flip 5e-2": NoiseConfig(flip=5e-2, on_drop="null"),
+    "burst": NoiseConfig(burst=True, on_drop="null"),
 }
-"""The noise settings, by name (bursts: the defaults, 1/11 of steps bad, flips 0.1 there)."""
+"""The noise settings, by name: the receiver uses the null message for a lost packet unless the
+name says ``last`` (bursts: the defaults, 1/11 of steps bad, flips 0.1 there)."""
 
 
 @dataclasses.dataclass

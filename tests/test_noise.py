@@ -316,7 +316,7 @@ def test_delay_line_delivers_what_was_sent_d_steps_before_and_null_until_then():
     from sparsecomm.channel import ChannelConfig
     from sparsecomm.rollout import _Wire
 
-    cfg = ChannelConfig(num_elements=2, noise=NoiseConfig(delay=2))
+    cfg = ChannelConfig(num_elements=2, noise=NoiseConfig(delay=2, on_drop="null"))
     wire = _Wire(cfg, jax.random.key(0), 1, 3, 5)
     heard = wire.init
     sent_z = [jnp.full((1, 3, 2, 2), 0.1 * (t + 1)) for t in range(5)]

@@ -104,10 +104,12 @@ class NoiseConfig:
     delay: int = 0
     """Steps d >= 0 a packet takes: what arrives at step t was sent at step t - d. Default 0
     (ours)."""
-    on_drop: str = "null"
+    on_drop: str = "last"
     """What the receiver uses for a lost or corrupted packet: ``"null"`` (the null message, as
     if the sender had been silent) or ``"last"`` (the link's last good message). Default
-    ``"null"``: provisional (ours), until the two are measured against each other."""
+    ``"last"`` (ours, measured in docs/noise.md): teams trained on a clean channel keep their
+    success under 20% packet loss with it (budget 16: 0.979 against 0.839 with ``null``, 5
+    seeds); teams trained under loss with ``null`` do about as well either way."""
 
     def __post_init__(self):
         for name in _PROBABILITIES:
@@ -235,7 +237,7 @@ def receive(
     code: Code | FittedCode | str,
     shape,
     last: np.ndarray | None = None,
-    on_drop: str = "null",
+    on_drop: str = "last",
     **decode_kwargs,
 ) -> tuple[np.ndarray, bool]:
     """What the recipient makes of one step's arrival: ``(message, ok)``.
