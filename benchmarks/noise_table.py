@@ -26,25 +26,29 @@ from sparsecomm.experiment import evaluate_runs, learner_for, load_run  # noqa: 
 from sparsecomm.reproduce.provenance import hardware  # noqa: E402
 
 SETTINGS = {
-    "clean": NoiseConfig(),
-    "erasure 0.1": NoiseConfig(erasure=0.1, on_drop="null"),
-    "erasure 0.2": NoiseConfig(erasure=0.2, on_drop="null"),
-    "erasure 0.4": NoiseConfig(erasure=0.4, on_drop="null"),
-    "erasure 0.2, last": NoiseConfig(erasure=0.2, on_drop="last"),
-    "flip 1e-3": NoiseConfig(flip=1e-3, on_drop="null"),
-    "flip 1e-2": NoiseConfig(flip=1e-2, on_drop="null"),
-    "flip 5e-2": NoiseConfig(flip=5e-2, on_drop="null"),
-    "burst": NoiseConfig(burst=True, on_drop="null"),
+    "clean": (NoiseConfig(), "none"),
+    "erasure 0.1": (NoiseConfig(erasure=0.1, on_drop="null"), "none"),
+    "erasure 0.2": (NoiseConfig(erasure=0.2, on_drop="null"), "none"),
+    "erasure 0.4": (NoiseConfig(erasure=0.4, on_drop="null"), "none"),
+    "erasure 0.2, last": (NoiseConfig(erasure=0.2, on_drop="last"), "none"),
+    "flip 1e-3": (NoiseConfig(flip=1e-3, on_drop="null"), "none"),
+    "flip 1e-2": (NoiseConfig(flip=1e-2, on_drop="null"), "none"),
+    "flip 5e-2": (NoiseConfig(flip=5e-2, on_drop="null"), "none"),
+    "burst": (NoiseConfig(burst=True, on_drop="null"), "none"),
+    "clean, hamming": (NoiseConfig(), "hamming74"),
+    "flip 1e-2, hamming": (NoiseConfig(flip=1e-2, on_drop="null"), "hamming74"),
+    "flip 5e-2, hamming": (NoiseConfig(flip=5e-2, on_drop="null"), "hamming74"),
 }
-"""The noise settings, by name: the receiver uses the null message for a lost packet unless the
-name says ``last`` (bursts: the defaults, 1/11 of steps bad, flips 0.1 there)."""
+"""The noise settings, by name, with the error correction the senders apply: the receiver uses
+the null message for a lost packet unless the name says ``last`` (bursts: the defaults, 1/11 of
+steps bad, flips 0.1 there; ``hamming``: ``ChannelConfig.ecc = "hamming74"``)."""
 
 
 @dataclasses.dataclass
 class Args:
     runs: tuple[Path, ...]
     """Run folders (every run of each is evaluated)."""
-    settings: tuple[str, ...] = tuple(SETTINGS)
+    settings: tuple[str, ...] = tuple(s for s in SETTINGS if "hamming" not in s)
     """Names of the noise settings to evaluate (keys of ``SETTINGS``)."""
     episodes: int = 500
     """Evaluation episodes per run and setting."""
@@ -58,7 +62,8 @@ def main(args: Args) -> list[dict]:
         config, _, runs, actor = load_run(folder)
         trained = config.channel.noise
         for name in args.settings:
-            channel = dataclasses.replace(config.channel, noise=SETTINGS[name])
+            noise, ecc = SETTINGS[name]
+            channel = dataclasses.replace(config.channel, noise=noise, ecc=ecc)
             learner = learner_for(dataclasses.replace(config, channel=channel))
             result = evaluate_runs(learner, runs, actor, args.episodes)
             for group, m in result["by_group"].items():
@@ -67,6 +72,7 @@ def main(args: Args) -> list[dict]:
                     "trained_under": dataclasses.asdict(trained),
                     "group": group,
                     "setting": name,
+                    "ecc": ecc,
                     "seeds": sum(1 for r in runs if r.group == group),
                     **{k: m[k] for k in m},
                 }

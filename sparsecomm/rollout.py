@@ -212,7 +212,9 @@ class _Wire:
         }
 
     def step(self, key, sent, u, heard):
-        lost, bad = channel.noise.lost_packets(key, self.noise, sent.link_wire, heard["bad"])
+        lost, bad = channel.noise.lost_packets(
+            key, self.noise, sent.link_wire, heard["bad"], self.cfg.ecc
+        )
         got, ok = sent.z_hat, ~lost
         heard = {**heard, "bad": bad}
         if self.noise.delay:  # what arrives now was sent ``delay`` steps ago

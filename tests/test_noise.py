@@ -342,3 +342,76 @@ def test_eval_command_can_evaluate_a_team_under_other_noise(tmp_path, fast_compi
     assert lost > 1.5  # two links, nearly always speaking: every packet lost
     main(args)
     assert "packets_lost_per_step" not in json.loads(out.read_text())["by_group"]["budget=16/0"]
+
+
+# -- error correction (issue 18 item 4) ------------------------------------------------------
+
+
+def test_hamming_corrects_one_flip_per_block_and_counts_its_bits():
+    from sparsecomm.channel import ecc
+
+    rng = np.random.default_rng(3)
+    for n in range(1, 20):
+        packet = rng.integers(0, 256, n, dtype=np.uint8).tobytes()
+        sent = ecc.encode(packet)
+        assert 8 * len(sent) == int(ecc.wire_bits(8 * n, "hamming74"))
+        assert int(ecc.data_bits(8 * len(sent), "hamming74")) == 8 * n
+        assert ecc.decode(sent) == packet
+        bits = np.unpackbits(np.frombuffer(sent, np.uint8))
+        for block in range(2 * n):  # one flip in every block at once: all corrected
+            bits[7 * block + rng.integers(7)] ^= 1
+        assert ecc.decode(np.packbits(bits).tobytes()) == packet
+    assert ecc.encode(b"") == b"" and int(ecc.wire_bits(0, "hamming74")) == 0
+    with pytest.raises(ValueError, match="ecc must be one of"):
+        ecc.encode(b"x", "turbo")
+
+
+def test_hamming_packets_survive_flips_as_the_block_law_says_and_never_decode_wrong():
+    import jax
+    import jax.numpy as jnp
+
+    from sparsecomm.channel import ecc
+    from sparsecomm.channel.noise import lost_packets
+
+    p, n = 0.02, 3000
+    link = NoisyLink(NoiseConfig(flip=p), np.random.default_rng(4))
+    rng = np.random.default_rng(5)
+    ok, expect = [], []
+    for _ in range(n):
+        m = np.where(rng.random(10) < 0.5, rng.integers(1, LEVELS + 1, 10), 0)
+        packet = channel.encode(m, "paper")
+        if not packet:
+            continue
+        got, fine = receive(link.send(ecc.encode(packet)), "paper", SHAPE, ecc="hamming74")
+        assert not fine or (got == m).all()  # accepted only when right
+        ok.append(fine)
+        expect.append(ecc.block_survival(p) ** (2 * len(packet)))
+    rate, want = np.mean(ok), np.mean(expect)
+    assert abs(rate - want) < 5 * np.sqrt(want * (1 - want) / len(ok)), (rate, want)
+    # without the code the same packets would mostly be lost: (1 - p)^W
+    assert want > np.mean([(1 - p) ** (8 * len(channel.encode(np.ones(10, int))))]) + 0.3
+    # the jit law agrees with the host's
+    w = jnp.full((200_000,), float(ecc.wire_bits(8 * 7, "hamming74")))
+    lost, _ = lost_packets(jax.random.key(0), NoiseConfig(flip=p), w, w < 0, "hamming74")
+    survive = ecc.block_survival(p) ** 14
+    assert abs(1 - float(lost.mean()) - survive) < 5 * np.sqrt(survive * (1 - survive) / w.size)
+
+
+def test_channel_with_hamming_counts_the_redundancy_in_its_wire_bits():
+    import jax
+
+    from sparsecomm.channel import ChannelConfig, ecc
+
+    z = jax.random.uniform(jax.random.key(0), (4, 3, 2, 10)) * (
+        jax.random.uniform(jax.random.key(1), (4, 3, 2, 10)) < 0.3
+    )
+    u = channel.dither(jax.random.key(2), z.shape)
+    plain = channel.transmit(ChannelConfig(), z, u)
+    coded = channel.transmit(ChannelConfig(ecc="hamming74"), z, u)
+    np.testing.assert_array_equal(coded.link_wire, ecc.wire_bits(plain.link_wire, "hamming74"))
+    m = np.asarray(coded.symbols)
+    for i in np.ndindex(m.shape[:3]):
+        packet = ecc.encode(channel.encode(m[i], "paper"))
+        assert 8 * len(packet) == coded.link_wire[i]
+    with pytest.raises(ValueError, match="ChannelConfig.ecc"):
+        ChannelConfig(ecc="turbo")

@@ -18,6 +18,7 @@ and counts what it cost; ``deliver`` routes the reconstructions to their recipie
 package imports nothing else of sparsecomm.
 """
 
+from sparsecomm.channel import ecc
 from sparsecomm.channel.codes import (
     CODE_NAMES,
     MAX_ELEMENTS,
@@ -74,6 +75,7 @@ __all__ = [
     "dequantize",
     "dither",
     "dither_key",
+    "ecc",
     "encode",
     "expected_bits",
     "fit",

@@ -26,6 +26,8 @@ import numpy as np
 from jax.scipy.special import gammaln
 
 from sparsecomm.channel.codes import CODE_NAMES, Code, frequency_remap, payload_bits, wire_bits
+from sparsecomm.channel.ecc import ECC_NAMES
+from sparsecomm.channel.ecc import wire_bits as ecc_bits
 from sparsecomm.channel.fitted import FittedCode
 from sparsecomm.channel.noise import NoiseConfig
 from sparsecomm.channel.penalty import bit_penalty, expected_bits
@@ -68,6 +70,10 @@ class ChannelConfig:
     delay; a packet with a flipped bit fails its CRC-32 and is lost, and the receiver uses the
     null message or its last good one (``noise.on_drop``). Applied in training and evaluation
     alike (``sparsecomm eval --noise.*`` evaluates a team under other noise). ours: none."""
+    ecc: str = "none"
+    """Error correction on every packet (``sparsecomm.channel.ecc``): ``none``, or
+    ``hamming74`` (each 4 bits of a packet sent as 7, correcting one flipped bit per block; the
+    redundancy, 1.75x plus padding, is counted in the wire bits). ours: ``none``."""
     bit_cost: float = 0.0
     """``reinforced`` mode only: reward subtracted from agent i at step t per payload bit it
     sends (paper reward units, scaled by ``reward_scale`` like the task reward; not included in
@@ -98,6 +104,8 @@ class ChannelConfig:
                     f"a code for levels {self.levels} and {self.num_elements} elements (it has "
                     f"levels {fitted.levels} and {fitted.elements} elements)",
                 )
+        if self.ecc not in ECC_NAMES:
+            raise _bad("ecc", self.ecc, f"one of {ECC_NAMES}")
         if not (self.bit_cost >= 0 and self.bit_cost < float("inf")):
             raise _bad("bit_cost", self.bit_cost, "finite and >= 0")
 
@@ -234,7 +242,7 @@ def transmit(cfg: ChannelConfig, z: jax.Array, u=None, keys=None, t=None, prev=N
     if cfg.mode == "continuous":
         link = jnp.full((b, k, r), 32.0 * c)
         total = jnp.full((b,), 32.0 * c * k * r)
-        per_link = wire_bits(z, cfg.code_obj).astype(jnp.float32)
+        per_link = ecc_bits(wire_bits(z, cfg.code_obj), cfg.ecc).astype(jnp.float32)
         m0 = jnp.zeros(z.shape, jnp.int32)
         return Sent(z, zeros_b, total, per_link.sum((-2, -1)), link, no_log_prob, m0, per_link)
     if cfg.mode == "reinforced":
@@ -248,7 +256,7 @@ def transmit(cfg: ChannelConfig, z: jax.Array, u=None, keys=None, t=None, prev=N
         log_prob = no_log_prob
     code = cfg.code_obj
     link = payload_bits(m, code).sum(-1).astype(jnp.float32)
-    per_link = wire_bits(m, code, prev=prev).astype(jnp.float32)  # (B, K, K-1) packets
+    per_link = ecc_bits(wire_bits(m, code, prev=prev), cfg.ecc).astype(jnp.float32)  # packets
     penalty = cfg.penalty(z).sum((-3, -2, -1))
     wire = per_link.sum((-2, -1))
     return Sent(

@@ -35,6 +35,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from sparsecomm.channel.codes import Code, PacketError, decode
+from sparsecomm.channel.ecc import block_survival, data_bits
+from sparsecomm.channel.ecc import decode as ecc_decode
 from sparsecomm.channel.fitted import FittedCode
 
 __all__ = [
@@ -238,6 +240,7 @@ def receive(
     shape,
     last: np.ndarray | None = None,
     on_drop: str = "last",
+    ecc: str = "none",
     **decode_kwargs,
 ) -> tuple[np.ndarray, bool]:
     """What the recipient makes of one step's arrival: ``(message, ok)``.
@@ -248,14 +251,15 @@ def receive(
     :class:`~sparsecomm.channel.codes.PacketError`, returns ``ok=False`` and, per ``on_drop``,
     the null message (zeros, ``decode``'s dtype) or a copy of ``last`` (the link's last good
     message; the null message when there is none yet). A corrupted packet is accepted only if
-    its CRC-32 matches by chance (~2^-32). Raises ``ValueError`` for a bad ``on_drop`` or a
+    its CRC-32 matches by chance (~2^-32). ``ecc``: the error correction the sender applied
+    (``sparsecomm.channel.ecc``), undone first. Raises ``ValueError`` for a bad ``on_drop`` or a
     ``shape`` the code cannot hold (the caller's error, not the channel's).
     """
     if on_drop not in ON_DROP:
         raise ValueError(f"on_drop must be one of {ON_DROP}, got {on_drop!r}")
     if packet is not None:
         try:
-            return decode(packet, code, shape, **decode_kwargs), True
+            return decode(ecc_decode(packet, ecc), code, shape, **decode_kwargs), True
         except PacketError:
             pass
     null = decode(b"", code, shape, **decode_kwargs)
@@ -278,7 +282,7 @@ def initial_bad(key: jax.Array, config: NoiseConfig, shape) -> jax.Array:
     return jax.random.uniform(key, shape) < config.burst_bad_share
 
 
-def lost_packets(key: jax.Array, config: NoiseConfig, wire_bits, bad) -> tuple:
+def lost_packets(key: jax.Array, config: NoiseConfig, wire_bits, bad, ecc: str = "none") -> tuple:
     """Which of a step's packets the receivers lose, and the burst states of the next step.
 
     ``wire_bits`` (...): each link's packet size (0: silent, nothing to lose); ``bad`` (...): the
@@ -287,7 +291,10 @@ def lost_packets(key: jax.Array, config: NoiseConfig, wire_bits, bad) -> tuple:
     probabilities p01 and p10 that is ``1 - (1 - p01)^n0 (1 - p10)^n1`` for a packet of n0 zeros
     and n1 ones. Under ``jit`` the bits themselves are not at hand, so ``n0 = n1 = W / 2`` (the
     exact count for symmetric flips and bursts, an approximation for asymmetric flips; on real
-    bytes :class:`NoisyLink` flips the actual bits). Returns ``(lost, bad_next)``, bool.
+    bytes :class:`NoisyLink` flips the actual bits). Under ``ecc = "hamming74"`` a packet of W
+    bits travels as W / 4 blocks of 7 (``wire_bits`` is what travels) and is lost when a block
+    has two flipped bits or more, flips at the mean rate ``(p01 + p10) / 2``. Returns ``(lost,
+    bad_next)``, bool.
     """
     w = jnp.asarray(wire_bits, jnp.float32)
     k_erase, k_flip, k_burst = jax.random.split(key, 3)
@@ -299,9 +306,14 @@ def lost_packets(key: jax.Array, config: NoiseConfig, wire_bits, bad) -> tuple:
     else:
         p01, p10 = config.flip_rates
         bad_next = bad
-    log_intact = (
-        0.5 * w * (jnp.log1p(-jnp.minimum(p01, 1 - 1e-7)) + jnp.log1p(-jnp.minimum(p10, 1 - 1e-7)))
-    )
+    if ecc == "hamming74":
+        blocks = data_bits(w, ecc) / 4
+        log_intact = blocks * jnp.log(block_survival(0.5 * (p01 + p10)))
+    else:
+        clip = 1 - 1e-7
+        log_intact = (
+            0.5 * w * (jnp.log1p(-jnp.minimum(p01, clip)) + jnp.log1p(-jnp.minimum(p10, clip)))
+        )
     flipped = jax.random.uniform(k_flip, w.shape) >= jnp.exp(log_intact)
     erased = jax.random.uniform(k_erase, w.shape) < config.erasure
     return (w > 0) & (erased | flipped), bad_next
