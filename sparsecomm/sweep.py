@@ -160,16 +160,31 @@ class _Log:
         self.header = path.exists() and resume_at > 0
         self.file = open(path, "a", newline="")
         self.csv = csv.writer(self.file)
+        self.tb_dir = out / "tensorboard"
         if tensorboard:
-            from tensorboardX import SummaryWriter
-
             # A resumed run redoes the updates after its checkpoint: purge_step makes TensorBoard
             # drop the earlier events from that step on, so each update shows once.
-            self.tb = SummaryWriter(
-                str(out / "tensorboard"),
-                purge_step=(resume_at + 1) * steps_per_update if resume_at > 0 else None,
-                filename_suffix=f".{resume_at}.{os.getpid()}",
-            )
+            purge = (resume_at + 1) * steps_per_update if resume_at > 0 else None
+            self._open_tb(purge, resume_at)
+
+    def _open_tb(self, purge_step, update: int) -> None:
+        from tensorboardX import SummaryWriter
+
+        self.tb = SummaryWriter(
+            str(self.tb_dir), purge_step=purge_step, filename_suffix=f".{update}.{os.getpid()}"
+        )
+
+    def sync(self, update: int) -> None:
+        """Everything logged so far on disk, before a checkpoint that covers it. tensorboardX
+        writes events from a queue in a thread, and its ``flush`` does not wait for the queue:
+        closing the writer does, so the writer is closed and a new one (a new event file) opened.
+        Without this a SIGKILL just after a checkpoint lost the TensorBoard points of its last
+        updates for good (the resumed run starts after them)."""
+        if self.file is not None:
+            self.file.flush()
+        if self.tb is not None:
+            self.tb.close()
+            self._open_tb(None, update)
 
     def write(self, metrics: dict, first_update: int) -> None:
         """Log ``metrics`` ({name: (runs, n)}) of updates ``first_update`` .. + n - 1."""
@@ -347,6 +362,7 @@ def run_sweep(
             sps=f"{sps:.0f}",
         )
         if chunks % checkpoint_every == 0 or done >= num_updates:
+            log.sync(done)
             checkpoint.save(ckpt, state, {**meta, "elapsed_s": elapsed + time.time() - t0})
         if on_chunk is not None:
             on_chunk(done, state, metrics)
