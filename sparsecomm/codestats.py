@@ -17,7 +17,7 @@ import jax
 import numpy as np
 
 from sparsecomm import channel
-from sparsecomm.channel.fitted import FittedCode, fit
+from sparsecomm.channel.fitted import FittedCode, fit, previous
 from sparsecomm.experiment import _at_least, _check_index, load_run
 from sparsecomm.rollout import rollout
 
@@ -68,11 +68,6 @@ def link_symbols(trainer, channel_cfg, params, key, episodes: int, batch: int = 
         links.append(m.transpose(1, 2, 3, 0, 4).reshape(b * k * r, t, c))
         valid.append(np.repeat(np.asarray(traj.valid).T, k * r, axis=0))
     return np.concatenate(links), np.concatenate(valid)
-
-
-def previous(links: np.ndarray) -> np.ndarray:
-    """Each step's previous message on its link (all nulls at t = 0)."""
-    return np.concatenate([np.zeros_like(links[:, :1]), links[:, :-1]], axis=1)
 
 
 def _h(counts) -> float:

@@ -224,6 +224,24 @@ def _learner(kind: str, config_dict: dict, where: Path):
 def load_run(folder: Path):
     """A run folder (or an exported team's) as ``(config, learner, runs, actor_params)``, the
     actors' parameters with a leading run axis. Reads msgpack and JSON only (no pickle)."""
+    config, trainer, runs, params = _load(folder)
+    return config, trainer, runs, params["actor"]
+
+
+def load_params(folder: Path, index: int = 0) -> dict:
+    """The parameters of run ``index`` of a run folder (``{"actor", "critic"}``; an exported
+    team has its actor only), without the run axis."""
+    _, _, runs, params = _load(folder)
+    if not 0 <= index < len(runs):
+        raise RunError(
+            f"init_index must be in [0, {len(runs) - 1}] (the runs of {folder}), got {index}"
+        )
+    return jax.tree.map(lambda x: np.asarray(x[index]), to_host(params))
+
+
+def _load(folder: Path):
+    """``(config, learner, runs, params)`` of a run folder or an exported team (its params: the
+    actor only), every parameter with a leading run axis."""
     folder = Path(folder)
     if not folder.is_dir():
         raise RunError(f"no run folder at {folder}")
@@ -233,35 +251,13 @@ def load_run(folder: Path):
         template = trainer.team.init(jax.random.key(0))["actor"]
         actor = serialization.from_bytes(template, (folder / "actor.msgpack").read_bytes())
         actor = jax.tree.map(lambda x: jnp.asarray(x)[None], actor)
-        return config, trainer, [Run(**meta["run"])], actor
+        return config, trainer, [Run(**meta["run"])], {"actor": actor}
     meta = checkpoint.load_meta(folder / "checkpoint")
     config, trainer = _learner(meta.get("kind"), meta["config"], folder)
     runs = spec_from_meta(meta).runs()
     template = jax.vmap(trainer.init)(*run_arrays(config, runs))
     state = checkpoint.load(folder / "checkpoint", template)
-    return config, trainer, runs, state.params["actor"]
-
-
-def load_params(folder: Path, index: int = 0) -> dict:
-    """The parameters of run ``index`` of a run folder (``{"actor", "critic"}``; an exported
-    team has its actor only), without the run axis."""
-    folder = Path(folder)
-    if (folder / "team.json").exists():
-        _, _, runs, actor = load_run(folder)
-        params = {"actor": actor}
-    else:
-        if not folder.is_dir():
-            raise RunError(f"no run folder at {folder}")
-        meta = checkpoint.load_meta(folder / "checkpoint")
-        config, trainer = _learner(meta.get("kind"), meta["config"], folder)
-        runs = spec_from_meta(meta).runs()
-        template = jax.vmap(trainer.init)(*run_arrays(config, runs))
-        params = checkpoint.load(folder / "checkpoint", template).params
-    if not 0 <= index < len(runs):
-        raise RunError(
-            f"init_index must be in [0, {len(runs) - 1}] (the runs of {folder}), got {index}"
-        )
-    return jax.tree.map(lambda x: np.asarray(x[index]), to_host(params))
+    return config, trainer, runs, state.params
 
 
 def export_team(args: Export) -> Path:

@@ -98,7 +98,7 @@ def rollout(
       keep_hidden: also return the GRU states each step's messages came from (for a penalty
         step outside the optimiser, ``sparsecomm.budget.penalty_step``).
       keep_symbols: also return the symbols of every link (for measuring and fitting codes,
-        ``sparsecomm.codebook``).
+        ``sparsecomm.codestats``).
     """
     k = env.num_agents
     num_steps = env.config.max_steps

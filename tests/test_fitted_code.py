@@ -10,7 +10,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from sparsecomm import channel
-from sparsecomm.channel.fitted import FittedCode, canonical_codes, fit, huffman_lengths
+from sparsecomm.channel.fitted import (
+    FittedCode,
+    canonical_codes,
+    fit,
+    huffman_lengths,
+    previous,
+)
 from sparsecomm.configs import ChannelConfig, RLConfig
 from sparsecomm.envs.navigation import NavConfig
 from sparsecomm.rl import make_train
@@ -36,10 +42,6 @@ def sticky_source(seed: int, links: int = 400, steps: int = 60) -> np.ndarray:
         keep = rng.random((links, C)) < 0.8
         out[:, t] = np.where(keep, out[:, t - 1], draw((links, C)))
     return out
-
-
-def previous(m: np.ndarray) -> np.ndarray:
-    return np.concatenate([np.zeros_like(m[:, :1]), m[:, :-1]], axis=1)
 
 
 @pytest.fixture(scope="module")

@@ -40,7 +40,7 @@ import zlib
 import jax.numpy as jnp
 import numpy as np
 
-__all__ = ["FittedCode", "fit", "huffman_lengths", "canonical_codes"]
+__all__ = ["FittedCode", "fit", "previous", "huffman_lengths", "canonical_codes"]
 
 FORMAT = "sparsecomm.fitted_code"
 MAX_ELEMENTS = 12
@@ -411,6 +411,11 @@ class FittedCode:
         return out
 
 
+def previous(links: np.ndarray) -> np.ndarray:
+    """Each step's previous message on its link, ``(N, T, C)``: all nulls at t = 0."""
+    return np.concatenate([np.zeros_like(links[:, :1]), links[:, :-1]], axis=1)
+
+
 def fit(symbols, valid=None, *, levels: int, group: int = 5, alpha: float = 0.5) -> FittedCode:
     """Fit a :class:`FittedCode` to links' symbol sequences.
 
@@ -424,7 +429,7 @@ def fit(symbols, valid=None, *, levels: int, group: int = 5, alpha: float = 0.5)
         raise ValueError(f"symbols must be (links, steps, elements), got shape {m.shape}")
     n, steps, c = m.shape
     valid = np.ones((n, steps), bool) if valid is None else np.asarray(valid, bool)
-    prev = np.concatenate([np.zeros_like(m[:, :1]), m[:, :-1]], axis=1)
+    prev = previous(m)
     busy = valid & (m != 0).any(-1)
     cur, prev = m[busy], prev[busy]
     groups = groups_of(c, group)

@@ -133,8 +133,8 @@ class ChannelConfig:
         """The most payload bits a team of ``num_agents`` can send in one step: every element of
         every link at the code's longest codeword."""
         code = self.code_obj
-        if code.name == "fitted" or (code.name == "paper" and code.remap):
-            code = Code("paper", self.levels)  # payload: the paper's count (of the remapped)
+        if code.name == "fitted":
+            code = Code("paper", self.levels)  # payload: the paper's count
         per_element = code.max_paper_length if code.name == "paper" else code.fixed_width
         return num_agents * (num_agents - 1) * self.num_elements * per_element
 
