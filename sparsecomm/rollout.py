@@ -195,8 +195,10 @@ class _Wire:
     """The noise between senders and receivers inside the scan (``ChannelConfig.noise``): which
     packets are lost (``channel.noise.lost_packets``), what a receiver uses instead (the null
     message, i.e. the reconstruction of all-null symbols, or its last good message), and the
-    delay line. Its keys come from ``fold_in(key, 7)``, outside the rollout's six splits, so a
-    clean channel keeps every other draw, and results, bit for bit."""
+    delay line; under ``code = "permuted"`` flips corrupt symbols instead of losing packets
+    (``channel.permuted.corrupt``). Its keys come from ``fold_in(key, 7)``, outside the
+    rollout's six splits, so a clean channel keeps every other draw, and results, bit for
+    bit."""
 
     def __init__(self, cfg: ChannelConfig, key, num_envs: int, k: int, num_steps: int):
         self.cfg, self.noise = cfg, cfg.noise
@@ -212,15 +214,19 @@ class _Wire:
         }
 
     def step(self, key, sent, u, heard):
+        permuted = self.cfg.code == "permuted"
+        if permuted:  # flips corrupt symbols instead of losing packets
+            key, k_symbols = jax.random.split(key)
         lost, bad = channel.noise.lost_packets(
-            key, self.noise, sent.link_wire, heard["bad"], self.cfg.ecc
+            key, self.noise, sent.link_wire, heard["bad"], self.cfg.ecc, flips_lose=not permuted
         )
-        got, ok = sent.z_hat, ~lost
+        now = self._corrupt(k_symbols, sent, u, heard["bad"]) if permuted else sent.z_hat
+        got, ok = now, ~lost
         heard = {**heard, "bad": bad}
         if self.noise.delay:  # what arrives now was sent ``delay`` steps ago
             queue, queue_ok = heard["queue"], heard["queue_ok"]
             got, ok = queue[:, 0], queue_ok[:, 0]
-            heard["queue"] = jnp.concatenate([queue[:, 1:], sent.z_hat[:, None]], 1)
+            heard["queue"] = jnp.concatenate([queue[:, 1:], now[:, None]], 1)
             heard["queue_ok"] = jnp.concatenate([queue_ok[:, 1:], ~lost[:, None]], 1)
         if self.noise.on_drop == "last":
             instead = heard["last"]
@@ -231,6 +237,21 @@ class _Wire:
         got = jnp.where(ok[..., None], got, instead)
         heard["last"] = jnp.where(ok[..., None], got, heard["last"])
         return got, heard, lost.sum((-2, -1)).astype(jnp.float32)
+
+    def _corrupt(self, key, sent, u, bad):
+        """The reconstructions of the symbols that cross the permuted channel
+        (``channel.permuted``), with the gradient of their expectation, ``alpha`` times the
+        sent message's."""
+        cfg, noise = self.cfg, self.noise
+        if noise.burst:  # each link's state sets the flip rate of all its elements
+            p01 = p10 = jnp.where(bad, noise.burst_flip_bad, noise.burst_flip_good)[..., None]
+            p01 = p10 = jnp.broadcast_to(p01, sent.symbols.shape)
+        else:
+            p01, p10 = noise.flip_rates
+        r = channel.permuted.corrupt(key, sent.symbols, cfg.levels, p01, p10)
+        z_hat = r / cfg.levels if u is None else (r - u) / cfg.levels
+        slope = channel.permuted.gradient_scale(cfg.levels, noise) * sent.z_hat
+        return slope + jax.lax.stop_gradient(z_hat - slope)
 
 
 def episode_metrics(traj: Trajectory) -> dict[str, jax.Array]:

@@ -18,7 +18,7 @@ and counts what it cost; ``deliver`` routes the reconstructions to their recipie
 package imports nothing else of sparsecomm.
 """
 
-from sparsecomm.channel import ecc
+from sparsecomm.channel import ecc, permuted
 from sparsecomm.channel.codes import (
     CODE_NAMES,
     MAX_ELEMENTS,
@@ -85,6 +85,7 @@ __all__ = [
     "link_dither",
     "link_tables",
     "others",
+    "permuted",
     "packet_bits",
     "paper_length",
     "payload_bits",

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import gammaln
 
+from sparsecomm.channel import permuted
 from sparsecomm.channel.codes import CODE_NAMES, Code, frequency_remap, payload_bits, wire_bits
 from sparsecomm.channel.ecc import ECC_NAMES
 from sparsecomm.channel.ecc import wire_bits as ecc_bits
@@ -34,7 +35,7 @@ from sparsecomm.channel.penalty import bit_penalty, expected_bits
 from sparsecomm.channel.quantizer import check_levels, dither, dither_key, quantize_dithered
 
 CHANNEL_MODES = ("discrete", "continuous", "off", "reinforced")
-CHANNEL_CODES = (*CODE_NAMES[:2], "fitted", "remapped")
+CHANNEL_CODES = (*CODE_NAMES[:2], "fitted", "remapped", "permuted")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -106,6 +107,10 @@ class ChannelConfig:
                 )
         if self.ecc not in ECC_NAMES:
             raise _bad("ecc", self.ecc, f"one of {ECC_NAMES}")
+        if self.code == "permuted" and self.mode not in ("discrete", "reinforced"):
+            raise _bad("code", self.code, f"not 'permuted' in mode {self.mode!r} (no symbols)")
+        if self.code == "permuted" and self.ecc != "none":
+            raise _bad("ecc", self.ecc, "'none' with code 'permuted' (its flips corrupt symbols)")
         if not (self.bit_cost >= 0 and self.bit_cost < float("inf")):
             raise _bad("bit_cost", self.bit_cost, "finite and >= 0")
 
@@ -115,6 +120,8 @@ class ChannelConfig:
             return Code("float32", self.levels)
         if self.code == "fitted":
             return load_code(self.code_file)
+        if self.code == "permuted":
+            return Code("paper", self.levels)  # payload: the paper's count
         if self.code == "remapped":
             counts = np.asarray(load_code(self.code_file).symbol_counts).sum(1)
             return Code("paper", self.levels, frequency_remap(counts))
@@ -256,7 +263,10 @@ def transmit(cfg: ChannelConfig, z: jax.Array, u=None, keys=None, t=None, prev=N
         log_prob = no_log_prob
     code = cfg.code_obj
     link = payload_bits(m, code).sum(-1).astype(jnp.float32)
-    per_link = ecc_bits(wire_bits(m, code, prev=prev), cfg.ecc).astype(jnp.float32)  # packets
+    if cfg.code == "permuted":  # every link sends its C codewords, whatever they say
+        per_link = jnp.full(link.shape, float(permuted.packet_bits(c, cfg.levels)))
+    else:
+        per_link = ecc_bits(wire_bits(m, code, prev=prev), cfg.ecc).astype(jnp.float32)
     penalty = cfg.penalty(z).sum((-3, -2, -1))
     wire = per_link.sum((-2, -1))
     return Sent(

@@ -283,7 +283,9 @@ def initial_bad(key: jax.Array, config: NoiseConfig, shape) -> jax.Array:
     return jax.random.uniform(key, shape) < config.burst_bad_share
 
 
-def lost_packets(key: jax.Array, config: NoiseConfig, wire_bits, bad, ecc: str = "none") -> tuple:
+def lost_packets(
+    key: jax.Array, config: NoiseConfig, wire_bits, bad, ecc: str = "none", flips_lose: bool = True
+) -> tuple:
     """Which of a step's packets the receivers lose, and the burst states of the next step.
 
     ``wire_bits`` (...): each link's packet size (0: silent, nothing to lose); ``bad`` (...): the
@@ -294,8 +296,10 @@ def lost_packets(key: jax.Array, config: NoiseConfig, wire_bits, bad, ecc: str =
     exact count for symmetric flips and bursts, an approximation for asymmetric flips; on real
     bytes :class:`NoisyLink` flips the actual bits). Under ``ecc = "hamming74"`` a packet of W
     bits travels as W / 4 blocks of 7 (``wire_bits`` is what travels) and is lost when a block
-    has two flipped bits or more, flips at the mean rate ``(p01 + p10) / 2``. Returns ``(lost,
-    bad_next)``, bool.
+    has two flipped bits or more, flips at the mean rate ``(p01 + p10) / 2``.
+    ``flips_lose=False``: flips lose nothing (packets with no CRC, whose flips corrupt symbols
+    instead, ``sparsecomm.channel.permuted``); only erasure does. Returns ``(lost, bad_next)``,
+    bool.
     """
     w = jnp.asarray(wire_bits, jnp.float32)
     k_erase, k_flip, k_burst = jax.random.split(key, 3)
@@ -315,6 +319,6 @@ def lost_packets(key: jax.Array, config: NoiseConfig, wire_bits, bad, ecc: str =
         log_intact = (
             0.5 * w * (jnp.log1p(-jnp.minimum(p01, clip)) + jnp.log1p(-jnp.minimum(p10, clip)))
         )
-    flipped = jax.random.uniform(k_flip, w.shape) >= jnp.exp(log_intact)
+    flipped = flips_lose & (jax.random.uniform(k_flip, w.shape) >= jnp.exp(log_intact))
     erased = jax.random.uniform(k_erase, w.shape) < config.erasure
     return (w > 0) & (erased | flipped), bad_next
