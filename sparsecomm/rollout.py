@@ -245,7 +245,6 @@ class _Wire:
         cfg, noise = self.cfg, self.noise
         if noise.burst:  # each link's state sets the flip rate of all its elements
             p01 = p10 = jnp.where(bad, noise.burst_flip_bad, noise.burst_flip_good)[..., None]
-            p01 = p10 = jnp.broadcast_to(p01, sent.symbols.shape)
         else:
             p01, p10 = noise.flip_rates
         r = channel.permuted.corrupt(key, sent.symbols, cfg.levels, p01, p10)

@@ -17,10 +17,14 @@ from sparsecomm.rollout import _Wire
 N = 400_000  # symbols per statistical test
 
 
-def _sent_and_received(levels, p01, p10, permute=True, seed=0):
+def _sent_and_received(levels, p01, p10, permute=True, seed=0, law=False):
+    """Uniform symbols through the bit-level mechanism (``simulate``) or its law (``corrupt``)."""
     k_m, k_c = jax.random.split(jax.random.PRNGKey(seed))
     m = jax.random.randint(k_m, (N,), 0, levels + 1)
-    r = permuted.corrupt(k_c, m, levels, p01, p10, permute=permute)
+    if law:
+        r = permuted.corrupt(k_c, m, levels, p01, p10)
+    else:
+        r = permuted.simulate(k_c, m, levels, p01, p10, permute=permute)
     return np.asarray(m), np.asarray(r)
 
 
@@ -43,6 +47,17 @@ def test_error_is_independent_of_the_message(levels):
     wrong = r != m
     offsets = np.bincount((r[wrong] - m[wrong]) % (levels + 1), minlength=levels + 1)[1:]
     assert stats.chisquare(offsets).pvalue > 1e-3
+
+
+@pytest.mark.parametrize("levels", [15, 14])
+def test_the_rollouts_sampler_draws_the_mechanisms_law(levels):
+    a = _sent_and_received(levels, 0.1, 0.05, seed=1)
+    b = _sent_and_received(levels, 0.1, 0.05, seed=2, law=True)
+    n = levels + 1
+    tables = [np.bincount(m * n + (r - m) % n, minlength=n * n) for m, r in (a, b)]
+    assert stats.chi2_contingency(np.array(tables))[1] > 1e-3  # same joint law of (m, offset)
+    eps = permuted.symbol_error_rate(levels, 0.1, 0.05)
+    assert abs((b[1] != b[0]).mean() - eps) < 5 * np.sqrt(eps * (1 - eps) / N)
 
 
 def test_without_the_permutation_the_error_depends_on_the_message():

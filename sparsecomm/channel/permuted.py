@@ -29,9 +29,11 @@ check both. Erasure (whole packets lost) and delay work as for every code
 the paper's C = 10, levels = 15), what a fixed-width code costs, and no sparsity on the wire;
 the payload bits and the penalty stay the paper's count.
 
-Under ``jit`` (:func:`corrupt`) the permutations are drawn from the wire's noise keys, with the
-same law as the shared-key draw of the host codec (:func:`tables`, :func:`encode`,
-:func:`decode`), which a deployment uses.
+Under ``jit`` the rollout draws the channel's law (:func:`corrupt`: each symbol wrong with
+probability ``eps``, then uniform among the others; two draws per element), which the tests
+check against the mechanism bit by bit (:func:`simulate`) and against real packets: the host
+codec (:func:`tables`, :func:`encode`, :func:`decode`) draws each link's permutations from its
+shared key, as a deployment does.
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ __all__ = [
     "encode",
     "gradient_scale",
     "packet_bits",
+    "simulate",
     "symbol_error_rate",
     "tables",
 ]
@@ -66,20 +69,19 @@ def packet_bits(num_elements: int, levels: int) -> int:
     return 8 * -(-num_elements * codeword_bits(levels) // 8)
 
 
-def symbol_error_rate(levels: int, p01: float, p10: float) -> float:
+def symbol_error_rate(levels: int, p01, p10):
     """``eps``: the probability that the received symbol differs from the sent one, the same
     for every sent symbol, when each 0 bit of a codeword flips with probability ``p01`` and
-    each 1 bit with ``p10``.
+    each 1 bit with ``p10`` (floats, or arrays under ``jit``).
 
-    The codeword of a symbol under a uniform permutation is uniform over all ``2^b``; it is
-    changed with probability ``q = 1 - mean_c (1 - p01)^zeros(c) (1 - p10)^ones(c)``. A changed
-    codeword is one of the other ``L - 1`` symbols' with probability ``(L - 1) / (2^b - 1)``
-    (always wrong), else unused, and then the fallback symbol is wrong with probability
-    ``(L - 1) / L``.
+    The codeword of a symbol under a uniform permutation is uniform over all ``2^b``, so each of
+    its bits is 0 or 1 with probability 1/2 and it is changed with probability ``q = 1 - (1 -
+    (p01 + p10) / 2)^b``. A changed codeword is one of the other ``L - 1`` symbols' with
+    probability ``(L - 1) / (2^b - 1)`` (always wrong), else unused, and then the fallback
+    symbol is wrong with probability ``(L - 1) / L``.
     """
     b, n = codeword_bits(levels), levels + 1
-    ones = np.array([bin(c).count("1") for c in range(2**b)])
-    q = 1.0 - float(np.mean((1.0 - p01) ** (b - ones) * (1.0 - p10) ** ones))
+    q = 1.0 - (1.0 - 0.5 * (p01 + p10)) ** b
     used = (n - 1) / (2**b - 1)
     return q * (used + (1.0 - used) * (n - 1) / n)
 
@@ -125,13 +127,30 @@ def _unpermute(sigma: jax.Array, fallback: jax.Array, codewords: jax.Array, leve
     return jnp.where(index <= levels, index, fallback)
 
 
-def corrupt(key: jax.Array, m: jax.Array, levels: int, p01, p10, permute: bool = True):
+def corrupt(key: jax.Array, m: jax.Array, levels: int, p01, p10) -> jax.Array:
     """Under ``jit``: the symbols a receiver gets when symbols ``m`` (any shape, int in [0,
-    levels]) cross the permuted channel with bit flips ``p01``, ``p10`` (scalars, or arrays of
-    ``m``'s shape: a burst channel's per-link state broadcast over elements).
+    levels]) cross the permuted channel with bit flips ``p01``, ``p10`` (scalars, or arrays
+    broadcasting against ``m``: a burst channel's per-link state).
 
-    ``permute=False`` sends the plain binary codeword ``m`` instead (no permutation): the
-    corruption then depends on the message, the contrast the tests measure.
+    Draws from the channel's law: each symbol independently arrives wrong with probability
+    ``eps`` (:func:`symbol_error_rate`), as a uniform choice among the other symbols; two draws
+    per element. The law of :func:`simulate`, the bit-level mechanism, which the tests compare
+    it with.
+    """
+    m = jnp.asarray(m, jnp.int32)
+    k_err, k_off = jax.random.split(key)
+    wrong = jax.random.uniform(k_err, m.shape) < symbol_error_rate(levels, p01, p10)
+    offset = jax.random.randint(k_off, m.shape, 1, levels + 1, jnp.int32)
+    return jnp.where(wrong, (m + offset) % (levels + 1), m)
+
+
+def simulate(key: jax.Array, m: jax.Array, levels: int, p01, p10, permute: bool = True):
+    """The permuted channel bit by bit, under ``jit``: a fresh permutation per symbol, its
+    codeword's bits flipped (0 -> 1 with ``p01``, 1 -> 0 with ``p10``), the flipped codeword
+    unpermuted (:func:`corrupt` draws the same law, cheaply).
+
+    ``permute=False`` sends the plain binary codeword ``m`` instead (an unused codeword reads as
+    ``levels``): the corruption then depends on the message, the contrast the tests measure.
     """
     m = jnp.asarray(m, jnp.int32)
     b = codeword_bits(levels)
