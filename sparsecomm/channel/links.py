@@ -25,13 +25,13 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import gammaln
 
-from sparsecomm.channel import permuted
 from sparsecomm.channel.codes import CODE_NAMES, Code, frequency_remap, payload_bits, wire_bits
 from sparsecomm.channel.ecc import ECC_NAMES
 from sparsecomm.channel.ecc import wire_bits as ecc_bits
 from sparsecomm.channel.fitted import FittedCode
 from sparsecomm.channel.noise import NoiseConfig
 from sparsecomm.channel.penalty import bit_penalty, expected_bits
+from sparsecomm.channel.permuted import packet_bits as permuted_bits
 from sparsecomm.channel.quantizer import check_levels, dither, dither_key, quantize_dithered
 
 CHANNEL_MODES = ("discrete", "continuous", "off", "reinforced")
@@ -264,7 +264,7 @@ def transmit(cfg: ChannelConfig, z: jax.Array, u=None, keys=None, t=None, prev=N
     code = cfg.code_obj
     link = payload_bits(m, code).sum(-1).astype(jnp.float32)
     if cfg.code == "permuted":  # every link sends its C codewords, whatever they say
-        per_link = jnp.full(link.shape, float(permuted.packet_bits(c, cfg.levels)))
+        per_link = jnp.full(link.shape, float(permuted_bits(c, cfg.levels)))
     else:
         per_link = ecc_bits(wire_bits(m, code, prev=prev), cfg.ecc).astype(jnp.float32)
     penalty = cfg.penalty(z).sum((-3, -2, -1))
