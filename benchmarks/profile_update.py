@@ -9,6 +9,7 @@ stacking per step (dynamic-update-slice), other element-wise work. Op time is su
 runtime's threads, so it exceeds wall-clock time when both cores work.
 
     python benchmarks/profile_update.py --num-envs 256 --trace-dir /tmp/sparsecomm-trace
+    python benchmarks/profile_update.py --naive     # the naive REINFORCE step of naive_step.py
 """
 
 from __future__ import annotations
@@ -64,12 +65,20 @@ def main() -> None:
     p.add_argument("--max-steps", type=int, default=256)
     p.add_argument("--trace-dir", default="/tmp/sparsecomm-trace")
     p.add_argument("--top", type=int, default=12, help="also list the N most costly ops")
+    p.add_argument("--naive", action="store_true", help="profile naive_step.py's step instead")
     a = p.parse_args()
 
     cfg = RLConfig(env=NavConfig(num_agents=a.agents, max_steps=a.max_steps), num_envs=a.num_envs)
-    tr = make_train(cfg)
-    state = jax.jit(tr.init)(jax.random.key(0), 0.0)
-    update = jax.jit(lambda s: tr.update_chunk(s, 1)[0]).lower(state).compile()
+    if a.naive:
+        from naive_step import make_naive  # beside this script
+
+        init, naive_update = make_naive(cfg)
+        state = init(jax.random.key(0))
+        update = jax.jit(naive_update).lower(state).compile()
+    else:
+        tr = make_train(cfg)
+        state = jax.jit(tr.init)(jax.random.key(0), 0.0)
+        update = jax.jit(lambda s: tr.update_chunk(s, 1)[0]).lower(state).compile()
     sources = op_sources(update.as_text())
     jax.block_until_ready(update(state))  # warm up
     t0 = time.perf_counter()
@@ -99,7 +108,8 @@ def main() -> None:
     total = sum(per_class.values())
     steps = a.num_envs * a.max_steps
     print(
-        f"one update of {a.num_envs} episodes x {a.max_steps} steps, K = {a.agents}: "
+        f"{'naive step' if a.naive else 'sparsecomm update'}: {a.num_envs} episodes x "
+        f"{a.max_steps} steps, K = {a.agents}: "
         f"{wall:.2f} s wall ({steps / wall:,.0f} env steps/s), {traced_wall:.2f} s traced; "
         f"op time {total:.2f} s on {len(threads)} threads"
     )
