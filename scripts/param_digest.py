@@ -4,12 +4,18 @@ A refactor that should not change behaviour must leave these digests unchanged o
 machine (CPU, same jax): ``python scripts/param_digest.py`` before and after, and compare.
 Covers fixed-lambda and budgeted RL, shared and separate actor parameters, the reinforced
 channel baseline, and DAgger imitation of the oracle.
+
+``--record tests/data/rl3.json`` writes the first case's record for ``tests/test_digest.py``:
+its digest, every parameter leaf's sum and norm, and the machine it ran on.
 """
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import hashlib
+import json
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -30,19 +36,35 @@ def digest(tree) -> str:
     return h.hexdigest()[:16]
 
 
-def run(make, cfg, lam=0.0, budget=float("nan")):
+def trained(make, cfg, lam=0.0, budget=float("nan")):
+    """The parameters after ``UPDATES`` updates."""
     learner = make(cfg)
     state = jax.jit(learner.init)(jax.random.key(cfg.seed), lam, budget)
     update = jax.jit(learner.update)
     for _ in range(UPDATES):
         state, _ = update(state)
-    return digest(state.params)
+    return state.params
 
 
-def main():
+def run(make, cfg, lam=0.0, budget=float("nan")):
+    return digest(trained(make, cfg, lam, budget))
+
+
+def summary(tree) -> dict:
+    """The digest, and each leaf's sum and Euclidean norm (float64), in leaf order."""
+    leaves = [np.asarray(x, np.float64) for x in jax.tree.leaves(tree)]
+    return {
+        "digest": digest(tree),
+        "sums": [float(x.sum()) for x in leaves],
+        "norms": [float(np.linalg.norm(x)) for x in leaves],
+    }
+
+
+def cases() -> dict:
+    """The cases, by name: ``(make, config, lambda, budget)``."""
     env = NavConfig(max_steps=24)
     rl = RLConfig(env=env, num_envs=8, seed=3)
-    cases = {
+    return {
         "rl lam 0": (make_train, rl, 0.0, float("nan")),
         "rl lam 0.01": (make_train, rl, 0.01, float("nan")),
         "rl budget 8 (engaged at once)": (
@@ -65,7 +87,22 @@ def main():
         ),
         "il dagger": (make_imitate, ILConfig(env=env, num_envs=8, seed=3), 0.001, float("nan")),
     }
-    for name, (make, cfg, lam, budget) in cases.items():
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--record", type=Path, help="write the first case's record here and stop")
+    a = p.parse_args()
+    if a.record is not None:
+        from sparsecomm.reproduce.provenance import hardware
+
+        name, (make, cfg, lam, budget) = next(iter(cases().items()))
+        record = {"case": name, "machine": hardware(), **summary(trained(make, cfg, lam, budget))}
+        a.record.parent.mkdir(parents=True, exist_ok=True)
+        a.record.write_text(json.dumps(record, indent=1) + "\n")
+        print(f"{name}: {record['digest']} -> {a.record}")
+        return
+    for name, (make, cfg, lam, budget) in cases().items():
         print(f"{name:32s} {run(make, cfg, lam, budget)}")
 
 
