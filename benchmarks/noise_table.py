@@ -38,17 +38,41 @@ SETTINGS = {
     "clean, hamming": (NoiseConfig(), "hamming74"),
     "flip 1e-2, hamming": (NoiseConfig(flip=1e-2, on_drop="null"), "hamming74"),
     "flip 5e-2, hamming": (NoiseConfig(flip=5e-2, on_drop="null"), "hamming74"),
+    "flip 1e-3, last": (NoiseConfig(flip=1e-3), "none"),
+    "flip 1e-2, last": (NoiseConfig(flip=1e-2), "none"),
+    "flip 5e-2, last": (NoiseConfig(flip=5e-2), "none"),
+    "burst, last": (NoiseConfig(burst=True), "none"),
+    "clean, permuted": (NoiseConfig(), "permuted"),
+    "flip 1e-3, permuted": (NoiseConfig(flip=1e-3), "permuted"),
+    "flip 1e-2, permuted": (NoiseConfig(flip=1e-2), "permuted"),
+    "flip 5e-2, permuted": (NoiseConfig(flip=5e-2), "permuted"),
+    "asymmetric, permuted": (NoiseConfig(flip_01=0.1, flip_10=0.05), "permuted"),
+    "burst, permuted": (NoiseConfig(burst=True), "permuted"),
+    "delay 1": (NoiseConfig(delay=1), "none"),
+    "delay 3": (NoiseConfig(delay=3), "none"),
 }
-"""The noise settings, by name, with the error correction the senders apply: the receiver uses
-the null message for a lost packet unless the name says ``last`` (bursts: the defaults, 1/11 of
-steps bad, flips 0.1 there; ``hamming``: ``ChannelConfig.ecc = "hamming74"``)."""
+"""The noise settings, by name, with the framing the senders use: ``none``, the run's packets
+(CRC-32; the paper's code for a run trained on the permuted channel), ``hamming74``
+(``ChannelConfig.ecc``) or ``permuted`` (``ChannelConfig.code``: no CRC, flips corrupt
+symbols, ``sparsecomm.channel.permuted``). The receiver uses the null message for a lost packet
+unless the name says ``last`` or ``permuted`` (there: its last good message, the default).
+Bursts: the defaults, 1/11 of steps bad, flips 0.1 there; ``asymmetric``: AAAI 2020's flips,
+0 -> 1 at 0.1 and 1 -> 0 at 0.05; ``delay d``: every message arrives d steps late."""
+
+
+def framed(channel, noise: NoiseConfig, framing: str):
+    """``channel`` under ``noise`` with the framing of a setting (see ``SETTINGS``)."""
+    if framing == "permuted":
+        return dataclasses.replace(channel, noise=noise, code="permuted", code_file="", ecc="none")
+    code = "paper" if channel.code == "permuted" else channel.code
+    return dataclasses.replace(channel, noise=noise, ecc=framing, code=code)
 
 
 @dataclasses.dataclass
 class Args:
     runs: tuple[Path, ...]
     """Run folders (every run of each is evaluated)."""
-    settings: tuple[str, ...] = tuple(s for s in SETTINGS if "hamming" not in s)
+    settings: tuple[str, ...] = tuple(list(SETTINGS)[:9])
     """Names of the noise settings to evaluate (keys of ``SETTINGS``)."""
     episodes: int = 500
     """Evaluation episodes per run and setting."""
@@ -63,7 +87,7 @@ def main(args: Args) -> list[dict]:
         trained = config.channel.noise
         for name in args.settings:
             noise, ecc = SETTINGS[name]
-            channel = dataclasses.replace(config.channel, noise=noise, ecc=ecc)
+            channel = framed(config.channel, noise, ecc)
             learner = learner_for(dataclasses.replace(config, channel=channel))
             result = evaluate_runs(learner, runs, actor, args.episodes)
             for group, m in result["by_group"].items():
@@ -72,7 +96,8 @@ def main(args: Args) -> list[dict]:
                     "trained_under": dataclasses.asdict(trained),
                     "group": group,
                     "setting": name,
-                    "ecc": ecc,
+                    "ecc": "none" if ecc == "permuted" else ecc,
+                    "framing": ecc,
                     "seeds": sum(1 for r in runs if r.group == group),
                     **{k: m[k] for k in m},
                 }
