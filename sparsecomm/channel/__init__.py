@@ -16,6 +16,9 @@ Between agents (``links``): ``ChannelConfig`` says how a team talks (mode, level
 code); ``transmit(cfg, z, u, keys, t)`` sends a batch of links ``(B, K, K-1, C)`` in any mode
 and counts what it cost; ``deliver`` routes the reconstructions to their recipients. This
 package imports nothing else of sparsecomm.
+
+Any other team (``layer``, docs/plugin.md): ``send(key, z, routing, t=t)`` sends signals over any
+routing (``Routing``) and returns ``Messages`` (symbols, inbox, penalty, bits per link).
 """
 
 from sparsecomm.channel import ecc, permuted
@@ -35,6 +38,7 @@ from sparsecomm.channel.codes import (
 )
 from sparsecomm.channel.fitted import FittedCode, fit
 from sparsecomm.channel.gate import GATES, gate, hard_gate
+from sparsecomm.channel.layer import Messages, Routing, reconstruct, send
 from sparsecomm.channel.links import (
     CHANNEL_MODES,
     ChannelConfig,
@@ -66,7 +70,9 @@ __all__ = [
     "ChannelConfig",
     "Code",
     "FittedCode",
+    "Messages",
     "PacketError",
+    "Routing",
     "Sent",
     "as_code",
     "bit_penalty",
@@ -92,6 +98,8 @@ __all__ = [
     "quantize",
     "quantize_dithered",
     "receive",
+    "reconstruct",
+    "send",
     "step_dither",
     "transmit",
     "wire_bits",
