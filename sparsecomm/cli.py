@@ -1,5 +1,5 @@
-"""Command line: ``sparsecomm train | imitate | eval | render | export | fit-code | reproduce``
-(tyro).
+"""Command line: ``sparsecomm train | imitate | eval | render | export | fit-code | reproduce |
+deploy`` (tyro).
 
 Every flag is a documented config field: ``sparsecomm train --help`` lists them all. The work is
 done in :mod:`sparsecomm.experiment`, :mod:`sparsecomm.codestats` and :mod:`sparsecomm.reproduce`;
@@ -15,11 +15,13 @@ from sparsecomm.codestats import FitCode, fit_code
 from sparsecomm.configs import PRESETS
 from sparsecomm.errors import RunError
 from sparsecomm.experiment import (
+    Deploy,
     Eval,
     Export,
     Imitate,
     Render,
     Train,
+    deploy,
     evaluate,
     export_team,
     render,
@@ -46,6 +48,7 @@ COMMANDS = {
     "export": (Export, export_team),
     "fit-code": (FitCode, fit_code),
     "reproduce": (Reproduce, reproduce),
+    "deploy": (Deploy, deploy),
 }
 
 

@@ -1,0 +1,17 @@
+"""Decentralised execution of a trained team: one OS process per agent, one for the world, the
+channel's real packets as UDP datagrams between them (issue 19, docs/deploy.md).
+
+* :mod:`~sparsecomm.deploy.wire`: the datagram around every packet (13-byte header with
+  CRC-16; silence is an explicit empty payload), address and socket helpers;
+* :mod:`~sparsecomm.deploy.faults`: seeded loss, duplication, reordering and garbage on the
+  agents' links, and the deadlines of every wait;
+* :mod:`~sparsecomm.deploy.core`: what a process computes (the eval draws regenerated from the
+  batch key, one agent's step, one receiver's reconstruction, the world's step);
+* :mod:`~sparsecomm.deploy.agent`, :mod:`~sparsecomm.deploy.world`: the two processes, each a
+  command (``python -m sparsecomm.deploy.agent ...``) that can run on its own host;
+* :mod:`~sparsecomm.deploy.launcher`: ``sparsecomm deploy``, everything on one host, with
+  restarts, kills on schedule, shutdown and the report;
+* :mod:`~sparsecomm.deploy.report`: the metrics and CIs of a world's episodes.
+
+Importing this package imports no JAX; the processes import it when they start.
+"""

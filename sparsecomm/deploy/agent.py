@@ -1,0 +1,409 @@
+"""One agent as its own process: ``python -m sparsecomm.deploy.agent --team T --agent I ...``.
+
+It binds its UDP address, says hello to the world, and then, for every observation the world
+sends for step ``t`` of episode ``b``:
+
+1. gathers the packets its peers sent it at step ``t - 1`` (one datagram per link, silence
+   included), waiting for them at most ``Deadlines.message`` from the observation's arrival;
+   a packet still missing then is the null message (or the link's last one, ``on_drop``);
+2. rebuilds each message with the dither regenerated from ``dither_key(chan[b], t - 1, s, I)``;
+3. steps its actor (``core.agent_step``: ``Team.act``, the action rule, ``channel.transmit``);
+4. sends each peer ``j`` its packet (``channel.encode``) through the fault layer, then the
+   world its action with what it sent and heard this step (counts, JSON).
+
+An observation of step 0, or the first observation this process sees, starts from a zero GRU
+state: a restarted agent rejoins the episode where it is, with its recurrent state reset (and,
+with ``on_drop = last``, no last messages). A duplicate observation is answered with the same
+action; an older one is ignored. The agent exits on the world's ``bye`` (0), after
+``Deadlines.idle`` without a word from the world (3), or on SIGINT/SIGTERM.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import heapq
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sparsecomm.deploy import wire
+from sparsecomm.deploy.faults import Deadlines, Faults, inject
+
+ON_DROP = ("null", "last")
+_STARTED = time.monotonic()
+
+
+@dataclasses.dataclass
+class AgentArgs:
+    """One agent process of a deployed team."""
+
+    team: Path
+    """Folder of the exported team (``sparsecomm export``; ``sparsecomm deploy`` writes one)."""
+    agent: int
+    """This agent's id, in [0, K - 1]."""
+    peers: tuple[str, ...]
+    """The address (host:port) of every agent, in id order, this one's included: where each
+    agent listens. The same list on every host."""
+    world: str
+    """The world's address (host:port)."""
+    seed: int
+    """The batch seed: ``sparsecomm eval`` uses ``config.seed + 1000003 + run index``."""
+    episodes: int
+    """Episodes in the batch (the draws depend on it, as in ``sparsecomm eval --episodes``)."""
+    listen: str = ""
+    """Address to bind (host:port); default: this agent's entry of ``peers``. On a host behind
+    another interface, e.g. ``0.0.0.0:9001``."""
+    greedy: bool = False
+    """Take the most probable action instead of sampling."""
+    on_drop: str = "null"
+    """A packet missing at the deadline is the ``null`` message (the issue's rule) or the link's
+    ``last`` good one (``NoiseConfig.on_drop``). Default: null."""
+    faults: Faults = Faults()
+    """Faults on this agent's outgoing packets."""
+    jax_cache: str = ""
+    """Folder of JAX's persistent compilation cache, shared by the team's processes (a
+    restarted agent then starts without compiling); empty: none."""
+    deadlines: Deadlines = Deadlines()
+    """How long each wait lasts."""
+
+    def __post_init__(self):
+        if self.on_drop not in ON_DROP:
+            raise ValueError(f"AgentArgs.on_drop must be one of {ON_DROP}, got {self.on_drop!r}")
+        for name in ("agent", "seed"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"AgentArgs.{name} must be an integer >= 0, got {value!r}")
+        if isinstance(self.episodes, bool) or not isinstance(self.episodes, int):
+            raise ValueError(f"AgentArgs.episodes must be an integer >= 1, got {self.episodes!r}")
+        if self.episodes < 1:
+            raise ValueError(f"AgentArgs.episodes must be an integer >= 1, got {self.episodes!r}")
+        if not 0 <= self.agent < len(self.peers):
+            raise ValueError(
+                f"AgentArgs.agent must be in [0, {len(self.peers) - 1}] (one per peer), got "
+                f"{self.agent}"
+            )
+        for text in self.peers:
+            wire.parse_address(text, "AgentArgs.peers")
+        wire.parse_address(self.world, "AgentArgs.world")
+        if self.listen:
+            wire.parse_address(self.listen, "AgentArgs.listen")
+
+
+class Outbox:
+    """Datagrams waiting for their send time (reordered ones are held back)."""
+
+    def __init__(self, sock):
+        self.sock, self.heap, self.n = sock, [], 0
+
+    def send(self, data: bytes, address, delay: float = 0.0) -> None:
+        if delay <= 0:
+            self._send(data, address)
+        else:
+            self.n += 1
+            heapq.heappush(self.heap, (time.monotonic() + delay, self.n, data, address))
+
+    def flush(self) -> float | None:
+        """Send what is due; the time until the next one (``None``: nothing held)."""
+        now = time.monotonic()
+        while self.heap and self.heap[0][0] <= now:
+            _, _, data, address = heapq.heappop(self.heap)
+            self._send(data, address)
+        return self.heap[0][0] - now if self.heap else None
+
+    def _send(self, data, address) -> None:
+        try:
+            self.sock.sendto(data, address)
+        except OSError:  # e.g. nobody listening yet (ICMP refused): the datagram is lost
+            pass
+
+
+class Agent:
+    def __init__(self, args: AgentArgs):
+        import jax
+        import jax.numpy as jnp
+
+        from sparsecomm import channel
+        from sparsecomm.deploy import core
+
+        core.use_compile_cache(args.jax_cache)
+        self.args, self.core, self.jnp = args, core, jnp
+        loaded = core.read_team(args.team)
+        self.cfg = loaded.config.channel
+        k = loaded.env.num_agents
+        if len(args.peers) != k:
+            raise ValueError(f"AgentArgs.peers must list the team's {k} agents, got {args.peers}")
+        self.k, self.i = k, args.agent
+        self.senders = [int(s) for s in channel.others(k)[self.i]]  # whom I hear, slot order
+        self.recipients = self.senders  # whom I send to, slot order (the same list)
+        self.peers = [wire.parse_address(p) for p in args.peers]
+        self.world = wire.parse_address(args.world)
+        listen = wire.parse_address(args.listen) if args.listen else self.peers[self.i]
+        self.sock = wire.udp_socket(listen)
+        self.out = Outbox(self.sock)
+        self.params = jax.tree.map(jnp.asarray, loaded.actor)
+        steps = loaded.env.config.max_steps
+        key = core.batch_key(args.seed)
+        self.chan, gumbel = core.agent_draws(key, args.episodes, steps, k, loaded.env.num_actions)
+        self.gumbel = np.asarray(gumbel[:, :, self.i])  # (T, N, A)
+        step_fn = core.agent_step(loaded.team, self.cfg, args.greedy)
+        dither_fn = core.link_dither(self.cfg, k)
+        rebuild_fn = core.reconstruct(self.cfg, k)
+        self.step_fn = lambda params, *rest: step_fn(params, self.i, *rest)
+        self.dither_fn = lambda key, t: dither_fn(key, t, self.i)
+        self.rebuild_fn = lambda key, t, *rest: rebuild_fn(key, t, self.i, *rest)
+        c = self.cfg.num_elements
+        self.c, self.h = c, loaded.team.cfg.gru
+        self.inbox: dict[tuple[int, int, int], list[bytes]] = {}
+        self.episode = -1
+        self.last_act: tuple[tuple[int, int], bytes] | None = None
+        self.counts = {"dup": 0, "stale": 0, "bad": 0}
+        self._reset_episode(-1)
+        self._warm_up()
+
+    def _reset_episode(self, episode: int) -> None:
+        jnp = self.jnp
+        self.episode, self.t = episode, -1
+        self.carry = jnp.zeros((self.h,), jnp.float32)
+        self.sent_prev = np.zeros((self.k - 1, self.c), np.int32)  # my links' symbols at t - 1
+        self.heard_prev = np.zeros((self.k - 1, self.c), np.int64)  # decoded symbols at t - 1
+        self.last = jnp.zeros((self.k - 1, self.c), jnp.float32)
+
+    def _warm_up(self) -> None:
+        """Compile every jitted function before saying hello."""
+        jnp = self.jnp
+        obs = np.zeros(self._obs_dim(), np.float32)
+        msgs, u = self._null_inputs(0, 0)
+        self.step_fn(
+            self.params, self.carry, obs, msgs, self.gumbel[0, 0], 0, u, self.sent_prev
+        ).action.block_until_ready()
+        ok = np.zeros(self.k - 1, bool)
+        zeros = jnp.zeros((self.k - 1, self.c), jnp.float32)
+        self.rebuild_fn(self.chan[0], 0, self.sent_prev, zeros, ok, self.last, False)
+
+    def _obs_dim(self) -> int:
+        return 4 + 2 * (self.k - 1)
+
+    def _null_inputs(self, episode: int, t: int):
+        msgs = np.zeros((self.k - 1) * self.c, np.float32)
+        return msgs, self.dither_fn(self.chan[episode], t)
+
+    # -- the loop ---------------------------------------------------------------------------
+
+    def run(self) -> int:
+        d = self.args.deadlines
+        hello = wire.pack(
+            wire.HELLO, self.i, wire.WORLD, 0, 0, json.dumps({"pid": os.getpid()}).encode()
+        )
+        start = time.monotonic()
+        next_hello = 0.0
+        obs = None
+        while obs is None:  # hello until the world answers with an observation
+            now = time.monotonic()
+            if now - start > d.startup:
+                print(f"agent {self.i}: no observation within {d.startup} s", file=sys.stderr)
+                return 3
+            if now >= next_hello:
+                self.out.send(hello, self.world)
+                next_hello = now + 0.5
+            got = self._receive(min(next_hello, start + d.startup))
+            if got == "bye":
+                return 0
+            obs = got if isinstance(got, wire.Datagram) else None
+        heard = time.monotonic()
+        while True:
+            if obs is not None:
+                result = self._act(obs)
+                if result == "bye":
+                    return 0
+                heard = time.monotonic()
+                obs = result if isinstance(result, wire.Datagram) else None
+                continue
+            got = self._receive(heard + d.idle)
+            if got == "bye":
+                return 0
+            if not isinstance(got, wire.Datagram):
+                if time.monotonic() - heard >= d.idle:
+                    print(f"agent {self.i}: world silent for {d.idle} s", file=sys.stderr)
+                    return 3
+                continue
+            obs = got
+
+    def _receive(self, until: float):
+        """Handle datagrams until an observation newer than the last handled arrives (returned),
+        a peer's packet (``"msg"``), a ``bye`` (``"bye"``) or the time ``until`` (``None``)."""
+        while True:
+            due = self.out.flush()
+            wait = until - time.monotonic()
+            if due is not None:
+                wait = min(wait, due)
+            if wait <= 0 and due is None:
+                return None
+            self.sock.settimeout(max(wait, 1e-4))
+            try:
+                data, _ = self.sock.recvfrom(wire.MAX_DATAGRAM)
+            except (TimeoutError, BlockingIOError):
+                if time.monotonic() >= until:
+                    return None
+                continue
+            except ConnectionError:  # ICMP port unreachable of an earlier send, on some OSes
+                continue
+            got = self._handle(data)
+            if got is not None:
+                return got
+
+    def _handle(self, data: bytes):
+        dg = wire.parse(data)
+        if dg is None or dg.recipient != self.i:
+            self.counts["bad"] += 1
+            return None
+        if dg.kind == wire.BYE and dg.sender == wire.WORLD:
+            return "bye"
+        if dg.kind == wire.OBS and dg.sender == wire.WORLD:
+            here = (dg.episode, dg.step)
+            if self.last_act is not None and here == self.last_act[0]:
+                self.out.send(self.last_act[1], self.world)  # the world asks again
+                return None
+            if self.last_act is not None and here < self.last_act[0]:
+                return None
+            return dg
+        if dg.kind == wire.MSG and dg.sender in self.senders:
+            if (dg.episode, dg.step) < (self.episode, self.t):
+                self.counts["stale"] += 1  # for a step already acted on
+                return None
+            got = self.inbox.setdefault((dg.episode, dg.step, dg.sender), [])
+            if dg.payload in got:
+                self.counts["dup"] += 1
+            elif len(got) < 4:
+                got.append(dg.payload)
+            return "msg"
+        self.counts["bad"] += 1
+        return None
+
+    def _gather(self, episode: int, t: int, until: float):
+        """Each sender's message of step ``t`` (decoded), waiting until ``until`` at most."""
+        got = [None] * (self.k - 1)
+        while True:
+            for r, s in enumerate(self.senders):
+                if got[r] is not None:
+                    continue
+                for payload in self.inbox.pop((episode, t, s), []):
+                    try:
+                        got[r] = self.core.decode_link(self.cfg, payload, self.heard_prev[r])
+                        break
+                    except ValueError:  # channel.PacketError: garbage behind a good header
+                        self.counts["bad"] += 1
+            if all(g is not None for g in got):
+                return got, None
+            event = self._receive(until)
+            if event != "msg":  # the deadline, a bye, or the world moved on (act on this step
+                return got, event  # first, then on the newer one)
+
+    def _act(self, obs: wire.Datagram):
+        """One step: gather, rebuild, act, send. Returns a newer observation that arrived
+        meanwhile, ``"bye"`` (after acting), or ``None``."""
+        jnp, d = self.jnp, self.args.deadlines
+        b, t = obs.episode, obs.step
+        arrived = time.monotonic()
+        if b >= self.args.episodes or t >= self.gumbel.shape[0]:
+            return None
+        rejoined = False
+        if b != self.episode or t == 0:
+            rejoined = t > 0  # a restart, or an episode whose start we missed
+            self._reset_episode(b)
+        elif t <= self.t:
+            return None
+        values = np.frombuffer(obs.payload, ">f4").astype(np.float32)
+        if values.size != self._obs_dim():
+            self.counts["bad"] += 1
+            return None
+        newer = None
+        missing = 0
+        if t == 0 or self.cfg.mode == "off":  # nothing heard yet, or nothing ever sent
+            msgs = np.zeros((self.k - 1) * self.c, np.float32)
+        else:
+            got, newer = self._gather(b, t - 1, arrived + d.message)
+            ok = np.array([g is not None for g in got])
+            missing = int((~ok).sum())
+            symbols = np.zeros((self.k - 1, self.c), np.int32)
+            floats = np.zeros((self.k - 1, self.c), np.float32)
+            for r, g in enumerate(got):
+                if g is not None:
+                    if self.cfg.mode == "continuous":
+                        floats[r] = g
+                    else:
+                        symbols[r] = g
+                        self.heard_prev[r] = g
+            use_last = self.args.on_drop == "last"
+            msgs, heard = self.rebuild_fn(
+                self.chan[b], t - 1, symbols, floats, ok, self.last, use_last
+            )
+            self.last = jnp.where(jnp.asarray(ok)[:, None], heard, self.last)
+        self._prune(b, t)
+        u = self.dither_fn(self.chan[b], t)
+        out = self.step_fn(
+            self.params, self.carry, values, msgs, self.gumbel[t, b], t, u, self.sent_prev
+        )
+        self.carry, self.t = out.carry, t
+        symbols, signal = np.asarray(out.symbols), np.asarray(out.signal)
+        report = {
+            "a": int(out.action),
+            "payload": [int(x) for x in np.asarray(out.payload)],
+            "sim_wire": [int(x) for x in np.asarray(out.wire)],
+            "packet": [],
+            "datagram": [],
+            "sent": [],
+            "sent_n": [],
+            "missing": missing,
+            "rejoined": rejoined,
+        }
+        for r, j in enumerate(self.recipients):
+            if self.cfg.mode == "off":
+                break
+            packet = self.core.encode_link(self.cfg, symbols[r], signal[r], self.sent_prev[r])
+            dg = wire.pack(wire.MSG, self.i, j, b, t, packet)
+            sends = inject(self.args.faults, dg, b, t, self.i, j)
+            for delay, data in sends:
+                self.out.send(data, self.peers[j], delay)
+            report["packet"].append(8 * len(packet))
+            report["datagram"].append(len(dg))
+            report["sent"].append(sum(len(data) for _, data in sends))
+            report["sent_n"].append(len(sends))
+        self.sent_prev = symbols
+        report.update(self.counts)
+        self.counts = dict.fromkeys(self.counts, 0)
+        act = wire.pack(wire.ACT, self.i, wire.WORLD, b, t, json.dumps(report).encode())
+        self.last_act = ((b, t), act)
+        self.out.send(act, self.world)
+        return newer
+
+    def _prune(self, episode: int, t: int) -> None:
+        for key in [key for key in self.inbox if (key[0], key[1]) < (episode, t)]:
+            del self.inbox[key]
+
+
+def main(argv: list[str] | None = None) -> int:
+    import tyro
+
+    wire.die_with_parent()
+    try:
+        args = tyro.cli(AgentArgs, args=argv)
+        agent = Agent(args)
+        ready = time.monotonic() - _STARTED
+        print(f"agent {args.agent}: ready {ready:.1f} s after start", flush=True)
+    except ValueError as e:
+        print(f"sparsecomm.deploy.agent: error: {e}", file=sys.stderr)
+        return 2
+    try:
+        return agent.run()
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        agent.sock.close()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

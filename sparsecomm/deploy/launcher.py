@@ -1,0 +1,488 @@
+"""``sparsecomm deploy``: start the world and one process per agent, keep them alive, report.
+
+For each run index: export the team (weights only) into the output folder, pick free UDP ports
+on ``Deploy.host``, start ``python -m sparsecomm.deploy.world`` and one ``python -m
+sparsecomm.deploy.agent`` per agent (each in its own session, so a Ctrl-C reaches the launcher
+alone; each asks Linux for SIGTERM when its parent dies, ``wire.die_with_parent``), then
+supervise them:
+
+* the world reports every step to the launcher's monitor socket; with ``kills_per_episode`` the
+  launcher SIGKILLs the scheduled agent at the scheduled step (``kill_plan``, seeded);
+* an agent process that dies while the world plays is started again at once (its recurrent
+  state starts from zero: it rejoins at the step the world is at; ``sparsecomm.deploy.agent``);
+* nothing waits without a deadline: the world that reports no step for
+  ``Deadlines.startup + Deadlines.action`` seconds is stopped and the run refused;
+* on return, error, Ctrl-C or SIGTERM every child is stopped (SIGTERM, then SIGKILL after 3 s)
+  and reaped: no orphan.
+
+Then it reads the world's ``episodes.jsonl``, computes eval's metrics with 95% bootstrap CIs
+over episodes (``sparsecomm.stats``), and, with ``reference``, plays the same episodes in
+simulation (``rollout``, the run's ``sparsecomm eval`` draws) to set the two side by side,
+episode for episode.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import json
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sparsecomm.deploy import wire
+from sparsecomm.deploy.faults import Deadlines, Faults
+from sparsecomm.deploy.report import CI_METRICS, read_episodes, summarize
+from sparsecomm.errors import RunError
+from sparsecomm.stats import bootstrap_ci
+
+
+def kill_plan(seed: int, episodes: int, num_agents: int, kills: int, window: int) -> dict:
+    """``{episode: [(step, agent), ...]}``: which agent the launcher kills at which step (uniform
+    in [1, window]) of each episode, ``kills`` per episode (a kill scheduled after the episode
+    ended does not happen). Seeded: the same plan for the same arguments."""
+    plan = {}
+    for b in range(episodes if kills else 0):
+        rng = np.random.default_rng([seed, b, 7919])
+        steps = rng.integers(1, window + 1, size=kills)
+        agents = rng.integers(0, num_agents, size=kills)
+        plan[b] = sorted(zip(steps.tolist(), agents.tolist(), strict=True))
+    return plan
+
+
+class Processes:
+    """The children of one deployment; ``close`` stops and reaps every one."""
+
+    def __init__(self, logs: Path):
+        self.logs = logs
+        self.logs.mkdir(parents=True, exist_ok=True)
+        self.all: list[subprocess.Popen] = []
+
+    def start(self, name: str, cmd: list[str]) -> subprocess.Popen:
+        log = open(self.logs / f"{name}.log", "ab")
+        log.write(f"--- start {time.strftime('%H:%M:%S')}: {' '.join(cmd)}\n".encode())
+        log.flush()
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        log.close()
+        self.all.append(proc)
+        return proc
+
+    def wait_ready(self, name: str, proc: subprocess.Popen, deadline: float) -> bool:
+        """Wait until the process ``name`` logs that it is ready, dies, or ``deadline``
+        seconds pass (True: ready)."""
+        until = time.monotonic() + deadline
+        while time.monotonic() < until and proc.poll() is None:
+            if ": ready " in self.tail(name, 3):
+                return True
+            time.sleep(0.05)
+        return False
+
+    def close(self, grace: float = 3.0) -> None:
+        alive = [p for p in self.all if p.poll() is None]
+        for p in alive:
+            with contextlib.suppress(ProcessLookupError):
+                p.terminate()
+        until = time.monotonic() + grace
+        for p in alive:
+            try:
+                p.wait(max(until - time.monotonic(), 0.01))
+            except subprocess.TimeoutExpired:
+                with contextlib.suppress(ProcessLookupError):
+                    p.kill()
+                p.wait(5)
+
+    def tail(self, name: str, lines: int = 15) -> str:
+        path = self.logs / f"{name}.log"
+        if not path.exists():
+            return ""
+        return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
+
+
+def _flags(prefix: str, obj) -> list[str]:
+    out = []
+    for field in dataclasses.fields(obj):
+        out += [f"--{prefix}.{field.name.replace('_', '-')}", str(getattr(obj, field.name))]
+    return out
+
+
+def play(
+    team: Path,
+    out: Path,
+    seed: int,
+    episodes: int,
+    num_agents: int,
+    *,
+    host: str = "127.0.0.1",
+    faults: Faults | None = None,
+    deadlines: Deadlines | None = None,
+    on_drop: str = "null",
+    greedy: bool = False,
+    kills_per_episode: int = 0,
+    kill_window: int = 8,
+    kill_seed: int = 0,
+) -> dict:
+    """Play one deployment of the exported ``team``; ``{"episodes": [...], "kills", "restarts",
+    "wall_s"}``. Raises ``RunError`` when the world fails or stalls."""
+    faults = Faults() if faults is None else faults
+    deadlines = Deadlines() if deadlines is None else deadlines
+    k = num_agents
+    ports = wire.free_ports(host, k + 1)
+    world_addr = f"{host}:{ports[0]}"
+    agents = [f"{host}:{p}" for p in ports[1:]]
+    monitor = wire.udp_socket((host, 0))
+    monitor_addr = f"{host}:{monitor.getsockname()[1]}"
+    py = [sys.executable, "-m"]
+    common = ["--team", str(team), "--seed", str(seed), "--episodes", str(episodes)]
+    common += ["--jax-cache", str(out / "jax_cache")]
+    world_cmd = [
+        *py,
+        "sparsecomm.deploy.world",
+        *common,
+        "--agents",
+        *agents,
+        "--listen",
+        world_addr,
+        "--monitor",
+        monitor_addr,
+        "--out",
+        str(out),
+        *_flags("deadlines", deadlines),
+    ]
+
+    def agent_cmd(i: int) -> list[str]:
+        return [
+            *py,
+            "sparsecomm.deploy.agent",
+            *common,
+            "--agent",
+            str(i),
+            "--peers",
+            *agents,
+            "--world",
+            world_addr,
+            "--on-drop",
+            on_drop,
+            "--greedy" if greedy else "--no-greedy",
+            *_flags("faults", faults),
+            *_flags("deadlines", deadlines),
+        ]
+
+    plan = kill_plan(kill_seed, episodes, k, kills_per_episode, kill_window)
+    shutil.rmtree(out / "logs", ignore_errors=True)
+    procs = Processes(out / "logs")
+    (out / "episodes.jsonl").unlink(missing_ok=True)
+    start = time.monotonic()
+    kills, restarts = [], []
+    previous = signal.signal(signal.SIGTERM, _interrupt)
+    try:
+        world = procs.start("world", world_cmd)
+        team_procs = [procs.start("agent_0", agent_cmd(0))]
+        # The others start once agent 0 has compiled: they then load its programs from the
+        # shared compilation cache instead of compiling them again on the same cores.
+        procs.wait_ready("agent_0", team_procs[0], deadlines.startup)
+        team_procs += [procs.start(f"agent_{i}", agent_cmd(i)) for i in range(1, k)]
+        max_restarts = kills_per_episode * episodes + 3 * k
+        stall = deadlines.startup + deadlines.action
+        progress = time.monotonic()
+        monitor.settimeout(0.05)
+        while world.poll() is None:
+            try:
+                dg = wire.parse(monitor.recv(wire.MAX_DATAGRAM))
+            except (TimeoutError, BlockingIOError, ConnectionError):
+                dg = None
+            now = time.monotonic()
+            if dg is not None and dg.kind == wire.STEP:
+                progress = now
+                for step, agent in plan.get(dg.episode, []):
+                    if step == dg.step and team_procs[agent].poll() is None:
+                        team_procs[agent].kill()
+                        kills.append({"episode": dg.episode, "step": step, "agent": agent})
+            for i, p in enumerate(team_procs):  # exit 0: told bye, the world is done
+                if p.poll() not in (None, 0) and world.poll() is None:
+                    if len(restarts) >= max_restarts:
+                        raise RunError(
+                            f"agent {i} keeps dying ({len(restarts)} restarts); its log:\n"
+                            + procs.tail(f"agent_{i}")
+                        )
+                    restarts.append({"agent": i, "exit": p.returncode, "at_s": now - start})
+                    team_procs[i] = procs.start(f"agent_{i}", agent_cmd(i))
+            if now - progress > stall:
+                raise RunError(
+                    f"the world reported no step for {stall:.0f} s (Deadlines.startup + "
+                    "Deadlines.action); its log:\n" + procs.tail("world")
+                )
+        if world.returncode != 0:
+            raise RunError(
+                f"the world exited with {world.returncode}; its log:\n" + procs.tail("world")
+            )
+        until = time.monotonic() + 5.0  # the agents were told bye
+        for p in team_procs:
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                p.wait(max(until - time.monotonic(), 0.01))
+    finally:
+        procs.close()
+        monitor.close()
+        signal.signal(signal.SIGTERM, previous)
+    return {
+        "episodes": read_episodes(out),
+        "kills": kills,
+        "restarts": restarts,
+        "wall_s": time.monotonic() - start,
+    }
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+class Background:
+    """``fn(*args)`` in a daemon thread (a Ctrl-C does not wait for it); ``result()`` joins it
+    and returns its value or raises its exception."""
+
+    def __init__(self, fn, *args):
+        self.value, self.error = None, None
+        self.thread = threading.Thread(target=self._run, args=(fn, args), daemon=True)
+        self.thread.start()
+
+    def _run(self, fn, args):
+        try:
+            self.value = fn(*args)
+        except BaseException as e:  # re-raised in the caller's thread by result()
+            self.error = e
+
+    def result(self):
+        self.thread.join()
+        if self.error is not None:
+            raise self.error
+        return self.value
+
+
+def reference(env, team, channel, params, seed: int, episodes: int, greedy: bool) -> dict:
+    """The same episodes played in simulation (``rollout`` with the batch key of ``sparsecomm
+    eval``) over ``channel`` (``ChannelConfig``): per-episode success, length, payload and
+    wire bits."""
+    import jax
+
+    from sparsecomm.deploy.core import batch_key
+    from sparsecomm.rollout import rollout
+
+    traj = jax.jit(lambda p, k: rollout(team, env, channel, p, k, episodes, greedy=greedy))(
+        params, batch_key(seed)
+    )
+    valid = np.asarray(traj.valid)
+    return {
+        "success": np.asarray(traj.success).any(0),
+        "length": valid.sum(0),
+        "payload_bits": (np.asarray(traj.payload_bits) * valid).sum(0),
+        "sim_wire_bits": (np.asarray(traj.wire_bits) * valid).sum(0),
+    }
+
+
+def compare(episodes: list[dict], ref: dict) -> dict:
+    """The simulation's figures of the same episodes, and how many episodes are identical
+    (success, length, payload bits and wire bits all equal)."""
+    steps = ref["length"].sum()
+    same = [
+        bool(e["success"]) == bool(ref["success"][b])
+        and e["length"] == int(ref["length"][b])
+        and e["payload_bits"] == round(float(ref["payload_bits"][b]))
+        and e["sim_wire_bits"] == round(float(ref["sim_wire_bits"][b]))
+        for b, e in enumerate(episodes)
+    ]
+    return {
+        "success_rate": float(ref["success"].mean()),
+        "episode_length": float(ref["length"].mean()),
+        "bits_per_step": float(ref["payload_bits"].sum() / steps),
+        "wire_bits_per_step": float(ref["sim_wire_bits"].sum() / steps),
+        "identical_episodes": int(sum(same)),
+        "different_episodes": [b for b, s in enumerate(same) if not s],
+    }
+
+
+def export(config, runs, actor, index: int, folder: Path, source: Path) -> Path:
+    """Write run ``index`` as an exported team (as ``sparsecomm export`` does)."""
+    import jax
+    from flax import serialization
+
+    from sparsecomm.configs import ILConfig, to_dict
+    from sparsecomm.jsonfile import write_json
+    from sparsecomm.sharding import to_host
+
+    one = jax.tree.map(lambda x: np.asarray(x[index]), to_host(actor))
+    folder.mkdir(parents=True, exist_ok=True)
+    meta = {
+        "kind": "imitate" if isinstance(config, ILConfig) else "train",
+        "config": to_dict(config),
+        "run": runs[index]._asdict(),
+        "note": f"deployed from {source}, index {index}",
+    }
+    write_json(folder / "team.json", meta)
+    (folder / "actor.msgpack").write_bytes(serialization.to_bytes(one))
+    return folder
+
+
+def deploy(args, *, load_run, pretrained: Path, seed_offset: int) -> dict:
+    """Run ``sparsecomm deploy`` (``experiment.Deploy``); writes ``<out>/deploy.json``. On
+    Ctrl-C or SIGTERM every process is stopped and it exits with status 130.
+
+    ``experiment.deploy`` passes what it owns (this package does not import it: no cycle):
+    ``load_run`` (``experiment.load_run``), the shipped team ``pretrained`` and
+    ``seed_offset`` (``EVAL_SEED_OFFSET``: run r plays the episodes of key ``config.seed +
+    seed_offset + r``, as ``sparsecomm eval``)."""
+    try:
+        return _deploy(args, load_run, Path(pretrained), seed_offset)
+    except KeyboardInterrupt:
+        print("deploy: interrupted; every process stopped", file=sys.stderr)
+        raise SystemExit(130) from None
+
+
+def _runs_of(source: Path) -> list:
+    """The runs of a run folder or exported team, read from its metadata alone."""
+    from sparsecomm import checkpoint
+    from sparsecomm.sweep import Run, spec_from_meta
+
+    if (source / "team.json").exists():
+        return [Run(**json.loads((source / "team.json").read_text())["run"])]
+    return spec_from_meta(checkpoint.load_meta(source / "checkpoint")).runs()
+
+
+def _load(source: Path, load_run):
+    """``(config, env, team, runs, actor)`` of a run folder (``experiment.load_run``) or of an
+    exported team (read directly: a second instead of building a learner)."""
+    import jax
+    import jax.numpy as jnp
+
+    from sparsecomm.deploy.core import read_team
+
+    if (source / "team.json").exists():
+        loaded = read_team(source)
+        actor = jax.tree.map(lambda x: jnp.asarray(x)[None], loaded.actor)
+        return loaded.config, loaded.env, loaded.team, _runs_of(source), actor
+    config, trainer, runs, actor = load_run(source)
+    return config, trainer.env, trainer.team, runs, actor
+
+
+def _deploy(args, load_run, pretrained: Path, seed_offset: int) -> dict:
+    import jax
+
+    from sparsecomm.channel import NoiseConfig
+    from sparsecomm.deploy.core import check_deployable, with_channel
+    from sparsecomm.errors import CheckpointError
+
+    source = pretrained if args.run is None else Path(args.run)
+    out = args.out or (Path("runs/pretrained") if args.run is None else source) / "deploy"
+    try:
+        runs = _runs_of(source)
+    except (OSError, KeyError, TypeError, ValueError, CheckpointError) as e:
+        raise RunError(f"Deploy.run must be a run folder or an exported team: {e}") from None
+    for r in args.index:
+        if not 0 <= r < len(runs):
+            raise RunError(
+                f"Deploy.index must be in [0, {len(runs) - 1}] (the runs of {source}), got {r}"
+            )
+    config, env, team_net, runs, actor = _load(source, load_run)
+    try:
+        check_deployable(config)
+    except ValueError as e:
+        raise RunError(str(e)) from None
+    k = config.env.num_agents
+    faults, deadlines = args.faults(), args.deadlines()
+    results = []
+    for r in args.index:
+        seed = config.seed + seed_offset + r
+        team = export(config, runs, actor, r, out / f"team_{r}", source)
+        print(f"deploy: run {r} ({k} agent processes + world), {args.episodes} episodes")
+        simulated = None
+        if args.reference:  # compiled and played in a thread while the processes start up
+            noise = NoiseConfig(erasure=args.loss, on_drop=args.on_drop)
+            params = jax.tree.map(lambda x, r=r: x[r], actor)
+            channel = with_channel(config, noise=noise).channel
+            simulated = Background(
+                reference, env, team_net, channel, params, seed, args.episodes, args.greedy
+            )
+        played = play(
+            team,
+            out / f"run_{r}",
+            seed,
+            args.episodes,
+            k,
+            host=args.host,
+            faults=faults,
+            deadlines=deadlines,
+            on_drop=args.on_drop,
+            greedy=args.greedy,
+            kills_per_episode=args.kills_per_episode,
+            kill_window=args.kill_window,
+            kill_seed=args.fault_seed,
+        )
+        means, cis = summarize(played["episodes"])
+        row = {
+            "index": r,
+            **runs[r]._asdict(),
+            "seed_key": seed,
+            "episodes": len(played["episodes"]),
+            **means,
+            "ci": cis,
+            "kills": len(played["kills"]),
+            "restarts": len(played["restarts"]),
+            "wall_clock_s": played["wall_s"],
+        }
+        if simulated is not None:
+            row["simulation"] = compare(played["episodes"], simulated.result())
+        results.append(row)
+        _print_row(row)
+    by_group = {}
+    for group in dict.fromkeys(runs[r].group for r in args.index):
+        rows = [row for row in results if runs[row["index"]].group == group]
+        by_group[group] = {
+            name: dict(
+                zip(
+                    ("mean", "ci_low", "ci_high"),
+                    bootstrap_ci([row[name] for row in rows]),
+                    strict=True,
+                )
+            )
+            for name in (*CI_METRICS, "packet_bits_per_step", "datagram_bits_per_step")
+        }
+    report = {
+        "episodes_per_run": args.episodes,
+        "greedy": args.greedy,
+        "faults": dataclasses.asdict(faults),
+        "kills_per_episode": args.kills_per_episode,
+        "on_drop": args.on_drop,
+        "deadlines": dataclasses.asdict(deadlines),
+        "header_bytes": wire.HEADER_BYTES,
+        "udp_ip_bytes": wire.UDP_IP_BYTES,
+        "runs": results,
+        "by_group": by_group,
+    }
+    from sparsecomm.jsonfile import write_json
+
+    write_json(out / "deploy.json", report)
+    print(f"-> {out / 'deploy.json'}")
+    return report
+
+
+def _print_row(row: dict) -> None:
+    ci = row["ci"]
+    line = (
+        f"  run {row['index']}: success {row['success_rate']:.3f} "
+        f"[{ci['success_rate'][0]:.3f}, {ci['success_rate'][1]:.3f}], "
+        f"length {row['episode_length']:.1f}, bits/step {row['bits_per_step']:.1f} payload, "
+        f"{row['packet_bits_per_step']:.1f} packet, {row['network_bits_per_step']:.1f} network; "
+        f"{row['restarts']} restarts"
+    )
+    if "simulation" in row:
+        sim = row["simulation"]
+        line += (
+            f"\n    simulation of the same episodes: success {sim['success_rate']:.3f}, length "
+            f"{sim['episode_length']:.1f}, bits/step {sim['bits_per_step']:.1f}; identical "
+            f"episodes {sim['identical_episodes']}/{row['episodes']}"
+        )
+    print(line)

@@ -1,0 +1,99 @@
+"""A deployment's figures from the world's ``episodes.jsonl``: eval's metrics, bits per step
+counted three ways, and 95% CIs over episodes (``sparsecomm.stats``).
+
+``python -m sparsecomm.deploy.report FOLDER`` prints them for a world's output folder (a
+deployment started by hand, on separate hosts)."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from sparsecomm.deploy import wire
+from sparsecomm.stats import bootstrap_ci
+
+CI_METRICS = (
+    "success_rate",
+    "episode_length",
+    "bits_per_step",
+    "wire_bits_per_step",
+    "network_bits_per_step",
+)
+"""The metrics given a 95% CI over episodes."""
+
+
+def summarize(episodes: list[dict]) -> tuple[dict, dict]:
+    """Eval's metrics of a deployment's episodes and their 95% CIs over episodes:
+    ``(means, {metric: [low, high]})``. Bits per step are ratios over all steps (as
+    ``rollout.episode_metrics``), their CIs resample episodes."""
+    col = {
+        name: np.array([e[name] for e in episodes], np.float64)
+        for name in episodes[0]
+        if not isinstance(episodes[0][name], dict)
+    }
+    steps = col["length"]
+    per_step = {
+        "bits_per_step": col["payload_bits"],
+        "wire_bits_per_step": col["sim_wire_bits"],
+        "packet_bits_per_step": col["packet_bits"],
+        "datagram_bits_per_step": 8 * col["datagram_bytes"],
+        "header_bits_per_step": 8 * wire.HEADER_BYTES * col["datagrams"],
+        "network_bits_per_step": 8
+        * (col["sent_bytes"] + wire.UDP_IP_BYTES * col["sent_datagrams"]),
+        "missing_messages_per_step": col["missing"],
+        "missing_actions_per_step": col["missing_actions"],
+    }
+    means = {
+        "success_rate": float(col["success"].mean()),
+        "episode_length": float(steps.mean()),
+        "group_reward": float(col["group_reward"].mean()),
+    }
+    means.update({name: float(v.sum() / steps.sum()) for name, v in per_step.items()})
+    means.update(
+        duplicates_dropped=int(col["dup"].sum()),
+        stale_dropped=int(col["stale"].sum()),
+        garbage_dropped=int(col["bad"].sum()),
+        rejoins=int(col["rejoined"].sum()),
+    )
+    cis = {}
+    for name in CI_METRICS:
+        if name in per_step:
+            num = per_step[name]
+
+            def ratio(idx, axis=-1, num=num):
+                idx = idx.astype(np.int64)
+                return num[idx].sum(axis) / steps[idx].sum(axis)
+
+            values = np.arange(len(steps), dtype=np.float64)
+            if np.all(num == num[0]) and np.all(steps == steps[0]):
+                low = high = means[name]
+            else:
+                _, low, high = bootstrap_ci(values, statistic=ratio)
+        else:
+            x = col["success"] if name == "success_rate" else steps
+            _, low, high = bootstrap_ci(x)
+        cis[name] = [low, high]
+    return means, cis
+
+
+def read_episodes(folder: str | Path) -> list[dict]:
+    """The episode records the world wrote to ``folder/episodes.jsonl``."""
+    lines = (Path(folder) / "episodes.jsonl").read_text().splitlines()
+    return [json.loads(line) for line in lines if line.strip()]
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if len(argv) != 1:
+        print("usage: python -m sparsecomm.deploy.report WORLD_OUT_FOLDER", file=sys.stderr)
+        return 2
+    means, cis = summarize(read_episodes(argv[0]))
+    print(json.dumps({**means, "ci": cis}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,287 @@
+"""The world as its own process: ``python -m sparsecomm.deploy.world --team T ...``.
+
+The simulator stands in for the world: it waits for every agent's hello (``Deadlines.startup``),
+then plays the batch's episodes one after another with the draws of ``sparsecomm eval``
+(``core.episode_draws``). At each step it sends every agent its observation, waits for every
+agent's action (``Deadlines.action`` at most; an agent that says hello meanwhile, restarted, is
+sent the observation again), takes action 0 (no force) for an agent still silent, and steps.
+Each agent's action datagram also says what the agent sent and heard that step; the world adds
+them up per link and per step (``links.csv``) and per episode (``episodes.jsonl``), and at the
+end tells every agent ``bye``. With ``--monitor`` it reports each step to the launcher, which
+may kill agents on schedule (``Deploy.kills_per_episode``).
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sparsecomm.deploy import wire
+from sparsecomm.deploy.faults import Deadlines
+
+LINK_FIELDS = (
+    "episode",
+    "step",
+    "sender",
+    "recipient",
+    "payload_bits",
+    "sim_wire_bits",
+    "packet_bits",
+    "datagram_bytes",
+    "sent_bytes",
+    "sent_datagrams",
+)
+"""Columns of ``links.csv``: one row per link and step, as the sender reported it.
+``payload_bits`` and ``sim_wire_bits``: the library's counts of the symbols sent
+(``channel.transmit``); ``packet_bits``: 8 x the bytes ``channel.encode`` wrote;
+``datagram_bytes``: the datagram (header + packet); ``sent_bytes``/``sent_datagrams``: what the
+fault layer really put on the network (0 when lost; duplicates and garbage included)."""
+
+
+@dataclasses.dataclass
+class WorldArgs:
+    """The world process of a deployed team."""
+
+    team: Path
+    """Folder of the exported team (its config: the task and the channel)."""
+    agents: tuple[str, ...]
+    """Every agent's address (host:port), in id order."""
+    seed: int
+    """The batch seed (the agents' ``--seed``)."""
+    episodes: int
+    """Episodes to play (the agents' ``--episodes``)."""
+    out: Path
+    """Folder for ``episodes.jsonl`` and ``links.csv``."""
+    listen: str = "127.0.0.1:9000"
+    """Address to bind (host:port), the agents' ``--world``. Default: loopback port 9000."""
+    monitor: str = ""
+    """The launcher's address (host:port), told of every step; empty: nobody."""
+    deadlines: Deadlines = Deadlines()
+    """How long each wait lasts."""
+    jax_cache: str = ""
+    """Folder of JAX's persistent compilation cache; empty: none."""
+
+    def __post_init__(self):
+        for name, low in (("seed", 0), ("episodes", 1)):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueError(f"WorldArgs.{name} must be an integer >= {low}, got {value!r}")
+        for text in self.agents:
+            wire.parse_address(text, "WorldArgs.agents")
+        wire.parse_address(self.listen, "WorldArgs.listen")
+        if self.monitor:
+            wire.parse_address(self.monitor, "WorldArgs.monitor")
+
+
+class World:
+    def __init__(self, args: WorldArgs):
+        import jax
+
+        from sparsecomm.deploy import core
+
+        core.use_compile_cache(args.jax_cache)
+        loaded = core.read_team(args.team, weights=False)
+        self.env = loaded.env
+        k = self.env.num_agents
+        if len(args.agents) != k:
+            raise ValueError(f"WorldArgs.agents must list the team's {k} agents, got {args.agents}")
+        self.args, self.k = args, k
+        self.agents = [wire.parse_address(a) for a in args.agents]
+        self.monitor = wire.parse_address(args.monitor) if args.monitor else None
+        self.steps = self.env.config.max_steps
+        key = core.batch_key(args.seed)
+        self.reset_keys, self.env_keys = core.world_draws(key, args.episodes, self.steps)
+        self.reset, self.step = core.world_fns(self.env)
+        obs, state = self.reset(self.reset_keys[0])  # compile before listening
+        self.step(self.env_keys[0, 0], state, jax.numpy.zeros(k, jax.numpy.int32))
+        self.sock = wire.udp_socket(wire.parse_address(args.listen))
+        args.out.mkdir(parents=True, exist_ok=True)
+        self.hellos = 0
+
+    def _send(self, data: bytes, address) -> None:
+        try:
+            self.sock.sendto(data, address)
+        except OSError:  # nobody listening (a dead agent): lost, as on a network
+            pass
+
+    def _recv(self, until: float):
+        wait = until - time.monotonic()
+        if wait <= 0:
+            return None
+        self.sock.settimeout(wait)
+        try:
+            data, _ = self.sock.recvfrom(wire.MAX_DATAGRAM)
+        except (TimeoutError, BlockingIOError):
+            return None
+        except ConnectionError:
+            return False
+        dg = wire.parse(data)
+        return dg if dg is not None and dg.recipient == wire.WORLD and dg.sender < self.k else False
+
+    def _greet(self) -> int:
+        """Wait for every agent's hello; 0, or 2 when one never came."""
+        until = time.monotonic() + self.args.deadlines.startup
+        ready = set()
+        while len(ready) < self.k:
+            dg = self._recv(until)
+            if dg is None:
+                missing = sorted(set(range(self.k)) - ready)
+                print(f"world: agents {missing} never said hello", file=sys.stderr)
+                return 2
+            if dg and dg.kind == wire.HELLO:
+                ready.add(dg.sender)
+        return 0
+
+    def run(self) -> int:
+        if self._greet():
+            return 2
+        out = self.args.out
+        with open(out / "episodes.jsonl", "w") as eps, open(out / "links.csv", "w") as lf:
+            links = csv.writer(lf)
+            links.writerow(LINK_FIELDS)
+            for b in range(self.args.episodes):
+                record = self._episode(b, links)
+                eps.write(json.dumps(record) + "\n")
+                eps.flush()
+        for _ in range(3):  # datagrams may be lost: say it thrice
+            for i, address in enumerate(self.agents):
+                self._send(wire.pack(wire.BYE, wire.WORLD, i, 0, 0), address)
+        return 0
+
+    def _episode(self, b: int, links) -> dict:
+        import jax.numpy as jnp
+
+        obs, state = self.reset(self.reset_keys[b])
+        k = self.k
+        rec = {
+            "episode": b,
+            "length": 0,
+            "success": False,
+            "group_reward": 0.0,
+            "missing_actions": 0,
+            "hellos": 0,
+        }
+        sums = dict.fromkeys(
+            (
+                "payload_bits",
+                "sim_wire_bits",
+                "packet_bits",
+                "datagram_bytes",
+                "sent_bytes",
+                "sent_datagrams",
+                "datagrams",
+                "missing",
+                "dup",
+                "stale",
+                "bad",
+                "rejoined",
+            ),
+            0,
+        )
+        per_link, counted = {}, set()
+        for t in range(self.steps):
+            if bool(state.done):
+                break
+            obs_np = np.asarray(obs, ">f4")
+            packets = [
+                wire.pack(wire.OBS, wire.WORLD, i, b, t, obs_np[i].tobytes()) for i in range(k)
+            ]
+            for i in range(k):
+                self._send(packets[i], self.agents[i])
+            if self.monitor is not None:
+                self._send(wire.pack(wire.STEP, wire.WORLD, wire.WORLD, b, t), self.monitor)
+            actions = np.zeros(k, np.int32)
+            answered = set()
+            until = time.monotonic() + self.args.deadlines.action
+            while len(answered) < k:
+                dg = self._recv(until)
+                if dg is None:
+                    break
+                if not dg:
+                    continue
+                if dg.kind == wire.HELLO:  # a restarted agent: tell it where we are
+                    rec["hellos"] += 1
+                    self._send(packets[dg.sender], self.agents[dg.sender])
+                    continue
+                if dg.kind != wire.ACT or dg.episode != b or dg.step > t:
+                    continue
+                try:
+                    report = json.loads(dg.payload)
+                except ValueError:
+                    continue
+                late = dg.step < t
+                if not late and dg.sender not in answered:
+                    answered.add(dg.sender)
+                    actions[dg.sender] = int(report.get("a", 0)) % self.env.num_actions
+                if (dg.sender, dg.step) not in counted:
+                    counted.add((dg.sender, dg.step))
+                    self._count(report, b, dg.step, dg.sender, sums, per_link, links)
+            rec["missing_actions"] += k - len(answered)
+            obs, state, rewards, _, info = self.step(
+                self.env_keys[t, b], state, jnp.asarray(actions)
+            )
+            rec["length"] += 1
+            rec["success"] |= bool(info["success"])
+            rec["group_reward"] += float(np.asarray(rewards).sum())
+        rec.update(sums)
+        rec["links"] = per_link
+        return rec
+
+    def _count(self, report, b, t, sender, sums, per_link, links) -> None:
+        """Add one agent's report of step ``t`` (what it sent and heard) to the episode."""
+        from sparsecomm import channel
+
+        recipients = channel.others(self.k)[sender]
+        payload = report.get("payload", [])
+        for r, j in enumerate(recipients):
+            row = {
+                "payload_bits": _at(payload, r),
+                "sim_wire_bits": _at(report.get("sim_wire", []), r),
+                "packet_bits": _at(report.get("packet", []), r),
+                "datagram_bytes": _at(report.get("datagram", []), r),
+                "sent_bytes": _at(report.get("sent", []), r),
+                "sent_datagrams": _at(report.get("sent_n", []), r),
+            }
+            links.writerow([b, t, sender, int(j), *row.values()])
+            link = per_link.setdefault(f"{sender}->{int(j)}", dict.fromkeys(row, 0))
+            for name, value in row.items():
+                link[name] += value
+                sums[name] += value
+            sums["datagrams"] += r < len(report.get("datagram", []))
+        for name in ("missing", "dup", "stale", "bad", "rejoined"):
+            sums[name] += int(report.get(name, 0))
+
+
+def _at(values, r: int) -> int:
+    try:
+        return int(values[r])
+    except (IndexError, TypeError, ValueError):
+        return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    import tyro
+
+    wire.die_with_parent()
+    try:
+        args = tyro.cli(WorldArgs, args=argv)
+        world = World(args)
+    except ValueError as e:
+        print(f"sparsecomm.deploy.world: error: {e}", file=sys.stderr)
+        return 2
+    try:
+        return world.run()
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        world.sock.close()
+
+
+if __name__ == "__main__":
+    sys.exit(main())
