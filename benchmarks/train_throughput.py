@@ -8,6 +8,8 @@ through the episode and through the channel, Adam step. Compile time excluded; t
     python benchmarks/train_throughput.py --mode train --num-envs 256 --seeds 1
     python benchmarks/train_throughput.py --mode train --budget 16     # with the budget controller
     python benchmarks/train_throughput.py --mode rollout --num-envs 256 --agents 5 --max-steps 128
+    python benchmarks/train_throughput.py --agents 10 --num-envs 64 --max-steps 64 \
+        --goal-view ring --neighbours 3 --aggregate mean     # many agents (docs/scaling.md)
     XLA_FLAGS=--xla_force_host_platform_device_count=2 \
         python benchmarks/train_throughput.py --mode train --sharded   # the sweep's device mesh
 """
@@ -55,18 +57,32 @@ class Args:
     share_params: bool = True
     """One set of actor parameters for all agents (the default learner); ``--no-share-params``
     for separate ones (the paper's, and the default before issue 14)."""
+    goal_view: str = "others"
+    """Who sees whose goal (``NavConfig.goal_view``): ``others`` (paper) or ``ring``."""
+    neighbours: int | None = None
+    """Each agent hears at most this many nearest agents (``AgentConfig.neighbours``)."""
+    radius: float | None = None
+    """Links only within this distance (``AgentConfig.radius``)."""
+    aggregate: str = "concat"
+    """The actors' inbox: ``concat``, ``mean`` or ``attention`` (``AgentConfig.aggregate``)."""
     sharded: bool = False
     """Train mode: split the seeds and episodes over all local devices as ``run_sweep`` does
     (``sparsecomm.sharding``); otherwise everything runs on the default device."""
 
 
 def main(a: Args) -> None:
-    env = NavConfig(num_agents=a.agents, max_steps=a.max_steps)
+    env = NavConfig(num_agents=a.agents, max_steps=a.max_steps, goal_view=a.goal_view)
+    agent = AgentConfig(
+        share_params=a.share_params,
+        neighbours=a.neighbours,
+        radius=a.radius,
+        aggregate=a.aggregate,
+    )
     cfg = RLConfig(
         env=env,
         num_envs=a.num_envs,
         remat=a.remat,
-        agent=AgentConfig(share_params=a.share_params),
+        agent=agent,
         budget=BudgetConfig(bits=a.budget),
     )
     tr = make_train(cfg)
@@ -113,8 +129,10 @@ def main(a: Args) -> None:
     layout = dict(mesh.shape) if mesh is not None else "one device"
     print(
         f"{a.mode} K={a.agents} T={a.max_steps} envs={a.num_envs} seeds={a.seeds} "
-        f"remat={a.remat} shared={a.share_params} budget={a.budget} ({layout}): "
-        f"{steps_per_call / med:,.0f} env steps/s "
+        f"remat={a.remat} shared={a.share_params} budget={a.budget} goal_view={a.goal_view} "
+        f"neighbours={a.neighbours} radius={a.radius} aggregate={a.aggregate} ({layout}): "
+        f"{steps_per_call / med:,.0f} env steps/s ({a.agents * steps_per_call / med:,.0f} agent "
+        f"steps/s) "
         f"(median of {a.repeats}, "
         f"{med:.2f} s/call; compile+first {compile_s:.1f} s) peak RSS {peak_rss:.2f} GiB"
         + (f", device peak {peak_dev:.2f} GiB" if peak_dev else "")

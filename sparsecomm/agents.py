@@ -16,6 +16,7 @@ import jax.numpy as jnp
 
 from sparsecomm.channel import gate
 from sparsecomm.configs import AgentConfig
+from sparsecomm.scaling import AttentionPool, check_fits, inbox_features
 
 
 def orthogonal(scale: float = 1.0, iterations: int = 60):
@@ -54,9 +55,12 @@ class Actor(nn.Module):
     num_elements: int
     message_bias_init: float = 0.0
     message_gate: str = "sigmoid"
+    attention: bool = False
 
     @nn.compact
-    def __call__(self, carry: jax.Array, x: jax.Array):
+    def __call__(self, carry: jax.Array, x: jax.Array, inbox=None, heard=None):
+        if self.attention:  # ``AgentConfig.aggregate = "attention"``: pool the inbox first
+            x = jnp.concatenate([x, AttentionPool(name="attention")(carry, inbox, heard)], -1)
         h = nn.relu(nn.Dense(self.hidden)(x))
         h = nn.relu(nn.Dense(self.hidden)(h))
         carry, h = nn.GRUCell(self.gru, recurrent_kernel_init=orthogonal())(carry, h)
@@ -93,10 +97,20 @@ class Team:
         num_elements: int,
         state_dim: int,
     ):
+        check_fits(cfg, num_agents)
         self.cfg = cfg
         self.num_agents = num_agents
         self.num_actions = num_actions
-        self.msg_in = (num_agents - 1) * num_elements
+        self.num_elements = num_elements
+        self.routed = cfg.neighbours is not None or cfg.radius is not None
+        """Links follow the agents' positions (``sparsecomm.scaling.routing_mask``)."""
+        inbox_sizes = {
+            "concat": (num_agents - 1) * num_elements,  # every link's message
+            "mean": num_elements + 1,  # their mean and the fraction of the team heard
+            "attention": 1,  # the fraction heard; the attention's pool is added in the actor
+        }
+        self.msg_in = inbox_sizes[cfg.aggregate]
+        """Inputs the actor's first layer reads from the inbox."""
         self.in_dim = obs_dim + self.msg_in + (num_agents if cfg.share_params else 0)
         self.state_dim = state_dim
         self.actor = Actor(
@@ -107,6 +121,7 @@ class Team:
             num_elements,
             cfg.message_bias_init,
             cfg.message_gate,
+            cfg.aggregate == "attention",
         )
         self.critic = Critic(cfg.critic_hidden, num_agents)
 
@@ -114,29 +129,47 @@ class Team:
         k_actor, k_critic = jax.random.split(key)
         carry = jnp.zeros((1, self.cfg.gru))
         x = jnp.zeros((1, self.in_dim))
+        inbox = jnp.zeros((1, self.num_agents - 1, self.num_elements))
+        heard = jnp.ones((1, self.num_agents - 1), bool)
         if self.cfg.share_params:
-            actor = self.actor.init(k_actor, carry, x)
+            actor = self.actor.init(k_actor, carry, x, inbox, heard)
         else:
             keys = jax.random.split(k_actor, self.num_agents)
-            actor = jax.vmap(lambda k: self.actor.init(k, carry, x))(keys)
+            actor = jax.vmap(lambda k: self.actor.init(k, carry, x, inbox, heard))(keys)
         critic = self.critic.init(k_critic, jnp.zeros((1, self.state_dim)))
         return {"actor": actor, "critic": critic}
 
     def initial_carry(self, batch: int) -> jax.Array:
         return jnp.zeros((batch, self.num_agents, self.cfg.gru))
 
-    def act(self, actor_params, carry: jax.Array, obs: jax.Array, msgs: jax.Array):
+    def act(self, actor_params, carry: jax.Array, obs: jax.Array, msgs: jax.Array, heard=None):
         """One step of every actor.
 
         Args: ``carry`` (B, K, H); ``obs`` (B, K, obs_dim); ``msgs`` (B, K, (K-1) C) decoded
-        messages received at the previous step. Returns ``(carry, logits (B, K, A),
-        z (B, K, K-1, C))``.
+        messages received at the previous step, by recipient (``channel.deliver``); ``heard``
+        (B, K, K-1) bool, which of them arrived (routing, ``sparsecomm.scaling``; None: all).
+        ``concat`` reads ``msgs`` whole; ``mean`` and ``attention`` only the heard ones.
+        Returns ``(carry, logits (B, K, A), z (B, K, K-1, C))``.
         """
-        x = jnp.concatenate([obs, msgs], axis=-1)
+        inbox = None
+        if self.cfg.aggregate == "concat":
+            x = jnp.concatenate([obs, msgs], axis=-1)
+        else:
+            inbox = msgs.reshape(*msgs.shape[:-1], self.num_agents - 1, self.num_elements)
+            if heard is None:
+                heard = jnp.ones(inbox.shape[:-1], bool)
+            x = jnp.concatenate([obs, inbox_features(inbox, heard, self.cfg.aggregate)], -1)
         if self.cfg.share_params:
             ids = jnp.broadcast_to(jnp.eye(self.num_agents), (*x.shape[:-1], self.num_agents))
-            return self.actor.apply(actor_params, carry, jnp.concatenate([x, ids], axis=-1))
-        return jax.vmap(self.actor.apply, in_axes=(0, 1, 1), out_axes=1)(actor_params, carry, x)
+            x = jnp.concatenate([x, ids], axis=-1)
+            if inbox is None:
+                return self.actor.apply(actor_params, carry, x)
+            return self.actor.apply(actor_params, carry, x, inbox, heard)
+        if inbox is None:
+            return jax.vmap(self.actor.apply, in_axes=(0, 1, 1), out_axes=1)(actor_params, carry, x)
+        return jax.vmap(self.actor.apply, in_axes=(0, 1, 1, 1, 1), out_axes=1)(
+            actor_params, carry, x, inbox, heard
+        )
 
     def message_penalty(self, head_params, hidden: jax.Array, penalty) -> jax.Array:
         """The bit penalty of the messages the head ``head_params`` (the actors' ``message``

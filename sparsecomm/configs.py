@@ -14,6 +14,7 @@ import math
 from sparsecomm.budget import BudgetConfig, check_budget
 from sparsecomm.channel import GATES, ChannelConfig
 from sparsecomm.envs.navigation import NavConfig
+from sparsecomm.scaling import check_agent_fields, check_fits
 
 
 def _bad(owner: str, name: str, value, allowed: str) -> ValueError:
@@ -54,6 +55,19 @@ class AgentConfig:
     ``hard``, a hard sigmoid whose silence is exact (z = 0, 0 bits) and reversible (a silent
     element reopens when the receivers' gain outweighs the price of its bits;
     ``sparsecomm.channel.gate``). ours: ``sigmoid`` (paper); docs/budget.md compares them."""
+    neighbours: int | None = None
+    """Many agents (``sparsecomm.scaling``, docs/scaling.md): each agent hears only the agents
+    nearest to it at each step, at most this many (an integer in [1, K - 1]); the other links
+    carry the null message, cost 0 bits and pass no gradient. None: every other agent (paper)."""
+    radius: float | None = None
+    """Many agents: link i -> j exists only while the two are at most this far apart (> 0,
+    arena units; combines with ``neighbours``). None: no limit (paper)."""
+    aggregate: str = "concat"
+    """How an actor reads its inbox: ``concat`` (paper: every link's message in a fixed order,
+    (K - 1) C inputs), ``mean`` (the mean over the senders it heard, C inputs, plus the fraction
+    heard) or ``attention`` (attention over them, ``scaling.AttentionPool``, plus the fraction
+    heard); ``mean`` and ``attention`` are permutation invariant and do not grow with K.
+    ours: ``concat`` (paper)."""
 
     def __post_init__(self):
         for name in ("hidden", "gru", "critic_hidden"):
@@ -64,6 +78,7 @@ class AgentConfig:
             raise _bad("AgentConfig", "message_gate", self.message_gate, f"one of {GATES}")
         if not math.isfinite(self.message_bias_init):
             raise _bad("AgentConfig", "message_bias_init", self.message_bias_init, "finite")
+        check_agent_fields(self.neighbours, self.radius, self.aggregate)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -139,6 +154,7 @@ class RLConfig:
         for name, (ok, allowed) in checks.items():
             if not ok:
                 raise _bad("RLConfig", name, getattr(self, name), allowed)
+        check_fits(self.agent, self.env.num_agents)
         check_budget_fits(self)
 
 
@@ -237,6 +253,7 @@ class ILConfig:
         for name, (ok, allowed) in checks.items():
             if not ok:
                 raise _bad("ILConfig", name, getattr(self, name), allowed)
+        check_fits(self.agent, self.env.num_agents)
         check_budget_fits(self)
 
 

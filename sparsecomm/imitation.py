@@ -43,7 +43,13 @@ def oracle_expert(env: NavigationEnv) -> Expert:
 
 def team_expert(team: Team, channel_cfg, actor_params) -> Expert:
     """A trained team as an :class:`Expert`: it talks among itself over its own channel (fresh
-    dither keys), and only its actions leave it. Acts greedily."""
+    dither keys), and only its actions leave it. Acts greedily. A team whose links follow
+    positions or whose inbox is aggregated (``sparsecomm.scaling``) is refused."""
+    if team.routed or team.cfg.aggregate != "concat":
+        raise ValueError(
+            "a team expert must use AgentConfig.neighbours = radius = None and aggregate "
+            "'concat' (its own all-to-all channel)"
+        )
     k = team.num_agents
     c = channel_cfg.num_elements
 

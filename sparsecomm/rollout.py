@@ -12,6 +12,12 @@ At step t every agent i reads its observation and the messages decoded at step t
 of step t+1. Everything stays differentiable with respect to the actors' parameters: a
 receiver's log-probabilities at t+1 depend on the senders' parameters through ``z_hat``, and on
 all earlier steps through the GRU states (backpropagation through the episode).
+
+Many agents (``AgentConfig.neighbours`` / ``radius``, :mod:`sparsecomm.scaling`): each step's
+links follow the positions of that step (``scaling.routing_mask``); a link that does not exist
+sends z = 0 (the null symbol: 0 bits, 0 penalty, no gradient) and delivers 0, and the receivers
+get, beside their messages, which links arrived (``heard``), for a ``mean`` or ``attention``
+inbox.
 """
 
 from __future__ import annotations
@@ -23,7 +29,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from sparsecomm import channel
+from sparsecomm import channel, scaling
 from sparsecomm.agents import Team
 from sparsecomm.channel import ChannelConfig
 from sparsecomm.envs.navigation import NavigationEnv
@@ -64,6 +70,7 @@ class Trajectory:
     hidden: Any = None  # (T, B, K, H) GRU states the messages came from (only ``keep_hidden``)
     symbols: Any = None  # (T, B, K, K-1, C) int32 symbols of each link (only ``keep_symbols``)
     lost: Any = None  # (T, B) packets the receivers lost (only with ``ChannelConfig.noise``)
+    links: Any = None  # (T, B) links that existed (only with routing, ``sparsecomm.scaling``)
 
 
 def rollout(
@@ -108,6 +115,9 @@ def rollout(
     msgs = jnp.zeros((num_envs, k, (k - 1) * c), jnp.float32)
     prev = jnp.zeros((num_envs, k, k - 1, c), jnp.int32)  # each link's symbols at t - 1
     carry = team.initial_carry(num_envs)
+    # which messages arrived, by recipient (None: all of them, the paper's full team)
+    masked = team.routed or team.cfg.aggregate != "concat"
+    heard = jnp.zeros((num_envs, k, k - 1), bool) if masked else None
     expert_carry = expert.init(num_envs) if expert is not None else None
     # All the step's randomness is drawn before the loop, in a few large vectorised draws.
     chan_keys = jax.random.split(k_chan, num_envs)
@@ -126,15 +136,15 @@ def rollout(
     # Episodes are independent: split them over the mesh's episodes axis, if there is one.
     batched = ("env", "gumbel", "dither", "mix")
     noise.update(split_episodes({n: v for n, v in noise.items() if n in batched}, axis=1))
-    state, obs, msgs, prev, carry, chan_keys = split_episodes(
-        (state, obs, msgs, prev, carry, chan_keys), axis=0
+    state, obs, msgs, prev, carry, chan_keys, heard = split_episodes(
+        (state, obs, msgs, prev, carry, chan_keys, heard), axis=0
     )
-    heard = None if wire is None else split_episodes(wire.init, axis=0)
+    wire_state = None if wire is None else split_episodes(wire.init, axis=0)
 
     def step(loop, noise):
-        state, obs, msgs, carry, expert_carry, prev, heard = loop
+        state, obs, msgs, carry, expert_carry, prev, wire_state, heard = loop
         t = noise["t"]
-        carry, logits, z = team.act(actor_params, carry, obs, msgs)
+        carry, logits, z = team.act(actor_params, carry, obs, msgs, heard)
         log_probs = jax.nn.log_softmax(logits)
         if greedy:
             actions = jnp.argmax(logits, -1)
@@ -146,10 +156,22 @@ def rollout(
             actions = jnp.where(use_expert, expert_actions, actions)
         else:
             expert_actions = jnp.full(actions.shape, -1)
+        links = None
+        if masked:  # the links of this step; the others send z = 0: null, 0 bits, no gradient
+            mask = scaling.routing_mask(state.pos, team.cfg.neighbours, team.cfg.radius)
+            if channel_cfg.mode == "off":  # nothing is sent, nothing arrives
+                mask = jnp.zeros_like(mask)
+            live = scaling.by_sender(mask)
+            z = jnp.where(live[..., None], z, 0.0)
+            links = live.sum((-2, -1)).astype(jnp.float32)
         sent = channel.transmit(channel_cfg, z, noise["dither"], chan_keys, t, prev)
         received, lost = sent.z_hat, None
         if wire is not None:  # packets lost, late, or replaced by the null or last message
-            received, heard, lost = wire.step(noise["loss"], sent, noise["dither"], heard)
+            received, wire_state, lost = wire.step(noise["loss"], sent, noise["dither"], wire_state)
+        if masked:  # a link that does not exist costs nothing and delivers 0
+            sent = _only_live(sent, live)
+            received = jnp.where(live[..., None], received, 0.0)
+            heard = scaling.by_recipient(mask)
         next_msgs = channel.deliver(received)
         global_state = jax.vmap(env.global_state)(state)
         valid = ~state.done
@@ -176,15 +198,31 @@ def rollout(
             hidden=jax.lax.stop_gradient(carry) if keep_hidden else None,
             symbols=sent.symbols if keep_symbols else None,
             lost=lost,
+            links=links,
         )
-        loop = (next_state, next_obs, next_msgs, carry, expert_carry, sent.symbols, heard)
+        loop = (next_state, next_obs, next_msgs, carry, expert_carry, sent.symbols, wire_state)
+        loop = (*loop, heard)
         return loop, record
 
     if remat:
         step = jax.checkpoint(step)
-    init = (state, obs, msgs, carry, expert_carry, prev, heard)
+    init = (state, obs, msgs, carry, expert_carry, prev, wire_state, heard)
     _, traj = jax.lax.scan(step, init, noise)
     return traj
+
+
+def _only_live(sent: channel.Sent, live: jax.Array) -> channel.Sent:
+    """``sent`` with the bits of the links that do not exist (``live`` False) set to 0: the
+    null symbol is free in the paper's code, but not in ``fixed`` or ``continuous`` ones."""
+    link = jnp.where(live, sent.link, 0.0)
+    link_wire = jnp.where(live, sent.link_wire, 0.0)
+    return sent._replace(
+        link=link,
+        payload=link.sum((-2, -1)),
+        link_wire=link_wire,
+        wire=link_wire.sum((-2, -1)),
+        z_hat=jnp.where(live[..., None], sent.z_hat, 0.0),
+    )
 
 
 def _noisy(cfg: ChannelConfig) -> bool:
@@ -255,7 +293,8 @@ class _Wire:
 
 def episode_metrics(traj: Trajectory) -> dict[str, jax.Array]:
     """Batch means of the SPEC section 6 metrics (rewards in the paper's units); with a noisy
-    channel also ``packets_lost_per_step``."""
+    channel also ``packets_lost_per_step``, with routing ``links_per_step`` (links that
+    existed)."""
     valid = traj.valid.astype(jnp.float32)
     steps = valid.sum()
     metrics = {
@@ -268,4 +307,6 @@ def episode_metrics(traj: Trajectory) -> dict[str, jax.Array]:
     }
     if traj.lost is not None:
         metrics["packets_lost_per_step"] = (traj.lost * valid).sum() / steps
+    if traj.links is not None:
+        metrics["links_per_step"] = (traj.links * valid).sum() / steps
     return metrics

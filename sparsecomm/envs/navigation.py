@@ -13,8 +13,12 @@ appends decoded messages itself.
 Actions (int32, one per agent): ``0`` no force, ``1`` up (+y), ``2`` down (-y), ``3`` left (-x),
 ``4`` right (+x).
 
-Observation of agent ``i`` (float32, ``obs_dim = 4 + 2 (K - 1)``): own position (2), own velocity
-(2), then the goals of the other ``K - 1`` agents in increasing agent index order, skipping ``i``.
+Observation of agent ``i`` (float32, ``obs_dim = 4 + 2 G``): own position (2), own velocity
+(2), then the goals of the ``G`` agents that ``NavConfig.goal_view`` shows it. ``"others"`` (the
+paper's, default): the other ``G = K - 1`` agents in increasing agent index order, skipping ``i``.
+``"ring"`` (for many agents, docs/scaling.md): ``G = goal_view_count`` goals, those of agents
+``i + 1, ..., i + G`` (mod K) in that order, so each goal is seen by the ``G`` agents before its
+owner and by nobody else. :func:`goal_view_index` is the table.
 
 Step order, from a state at time ``t`` with goals ``g_t``:
 
@@ -52,6 +56,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+
+GOAL_VIEWS = ("others", "ring")
+"""The rules of who observes whose goal (``NavConfig.goal_view``)."""
 
 NUM_ACTIONS = 5
 """Number of discrete actions: no force, up, down, left, right."""
@@ -106,6 +113,16 @@ class NavConfig:
     """Weight of the group term, the SUM of the individual terms. SPEC calibration: 0.5 / 3
     (= 0.5 * mean for K = 3; not rescaled with K)."""
 
+    goal_view: str = "others"
+    """Who observes whose goal. ``others``: agent i sees the goals of every other agent (paper).
+    ``ring``: agent i sees the goals of agents i+1, ..., i+goal_view_count (mod K), so the
+    observation no longer grows with K and each goal is known to goal_view_count agents only
+    (ours, for the many-agent task of docs/scaling.md). Nobody ever sees its own goal."""
+
+    goal_view_count: int = 1
+    """``goal_view = ring`` only: how many goals each agent sees, an integer in [1, K - 1].
+    ours: 1 (each goal is known to exactly one other agent)."""
+
     def __post_init__(self) -> None:
         self.validate()
 
@@ -115,13 +132,16 @@ class NavConfig:
         def bad(name: str, allowed: str) -> ValueError:
             return ValueError(f"NavConfig.{name} must be {allowed}, got {getattr(self, name)!r}")
 
-        for name in ("num_agents", "max_steps"):
+        integers = ("num_agents", "max_steps", "goal_view_count")
+        for name in integers:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | np.integer):
                 raise bad(name, "an integer")
+        if self.goal_view not in GOAL_VIEWS:
+            raise bad("goal_view", f"one of {GOAL_VIEWS}")
         for field in dataclasses.fields(self):
             value = getattr(self, field.name)
-            if field.name in ("num_agents", "max_steps"):
+            if field.name in (*integers, "goal_view"):
                 continue
             if isinstance(value, bool) or not isinstance(value, int | float | np.number):
                 raise bad(field.name, "a real number")
@@ -140,6 +160,8 @@ class NavConfig:
             raise bad("position_limit", f">= arena_half_width ({self.arena_half_width})")
         if not 0.0 <= self.damping < 1.0:
             raise bad("damping", "in [0, 1)")
+        if not 1 <= self.goal_view_count <= self.num_agents - 1:
+            raise bad("goal_view_count", f"in [1, {self.num_agents - 1}] (K - 1)")
 
     @property
     def max_speed(self) -> float:
@@ -174,12 +196,22 @@ def other_agent_index(num_agents: int) -> np.ndarray:
     ).reshape(num_agents, num_agents - 1)
 
 
+def goal_view_index(config: NavConfig) -> np.ndarray:
+    """(K, G) int array: row i lists the agents whose goals agent i observes, in observation
+    order (``NavConfig.goal_view``)."""
+    k = config.num_agents
+    if config.goal_view == "others":
+        return other_agent_index(k)
+    shifts = np.arange(1, config.goal_view_count + 1)
+    return ((np.arange(k)[:, None] + shifts[None, :]) % k).astype(np.int32)
+
+
 class NavigationEnv:
     """Hidden-goal cooperative navigation, JaxMARL-style pure functional API."""
 
     def __init__(self, config: NavConfig | None = None):
         self.config = NavConfig() if config is None else config
-        self._others = other_agent_index(self.config.num_agents)
+        self._seen = goal_view_index(self.config)
         self._directions = jnp.asarray(ACTION_DIRECTIONS)
 
     def __repr__(self) -> str:
@@ -195,7 +227,7 @@ class NavigationEnv:
 
     @property
     def obs_dim(self) -> int:
-        return 4 + 2 * (self.config.num_agents - 1)
+        return 4 + 2 * self._seen.shape[1]
 
     @property
     def state_dim(self) -> int:
@@ -221,8 +253,8 @@ class NavigationEnv:
         return self.get_obs(state), state
 
     def get_obs(self, state: NavState) -> jax.Array:
-        """(K, obs_dim) float32: own position, own velocity, other agents' goals."""
-        other_goals = state.goals[self._others].reshape(self.config.num_agents, -1)
+        """(K, obs_dim) float32: own position, own velocity, the goals ``goal_view`` shows."""
+        other_goals = state.goals[self._seen].reshape(self.config.num_agents, -1)
         return jnp.concatenate([state.pos, state.vel, other_goals], axis=-1)
 
     def global_state(self, state: NavState) -> jax.Array:

@@ -60,7 +60,7 @@ class NavigationParallelEnv(ParallelEnv):
             [
                 np.full(2, pos_hi, np.float32),
                 np.full(2, vel_hi, np.float32),
-                np.full(2 * (cfg.num_agents - 1), goal_hi, np.float32),
+                np.full(self.env.obs_dim - 4, goal_hi, np.float32),
             ]
         )
         self._observation_space = spaces.Box(-high, high, dtype=np.float32)

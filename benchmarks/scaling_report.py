@@ -1,0 +1,159 @@
+"""Tables and figures of docs/scaling.md from the throughput logs and the training runs.
+
+    python benchmarks/scaling_report.py --throughput docs/results/scaling/throughput.txt \
+        --runs runs/scaling/k10_mean runs/scaling/k10_mean_nb2 runs/scaling/k10_off \
+        --out docs/results/scaling
+
+Throughput: the lines ``benchmarks/train_throughput.py`` prints (one per run). Runs: folders of
+``sparsecomm train`` (``results.json``, ``metrics.csv``, ``checkpoint/config.json``); per arm
+the mean over seeds of the final evaluation with a BCa 95% CI over seeds
+(``sparsecomm.stats.bootstrap_ci``), and learning curves. Writes ``throughput.png``,
+``learning.png`` and ``tables.md``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import re
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import tyro  # noqa: E402
+
+from sparsecomm.stats import bootstrap_ci, read_csv, smooth  # noqa: E402
+
+LINE = re.compile(
+    r"train K=(?P<k>\d+) .*goal_view=(?P<view>\w+) neighbours=(?P<nb>\w+) radius=(?P<r>[\w.]+) "
+    r"aggregate=(?P<agg>\w+) .*?: (?P<env>[\d,]+) env steps/s \((?P<agent>[\d,]+) agent steps/s\)"
+    r".*?compile\+first (?P<compile>[\d.]+) s\) peak RSS (?P<rss>[\d.]+) GiB"
+)
+
+
+@dataclasses.dataclass
+class Args:
+    throughput: Path | None = None
+    """Log of benchmarks/train_throughput.py lines."""
+    runs: tuple[Path, ...] = ()
+    """``sparsecomm train`` run folders, one per arm."""
+    out: Path = Path("docs/results/scaling")
+    """Where the figures and tables go."""
+
+
+def throughput_rows(path: Path) -> list[dict]:
+    rows = []
+    for line in path.read_text().splitlines():
+        m = LINE.match(line)
+        if m:
+            d = m.groupdict()
+            rows.append(
+                {
+                    "K": int(d["k"]),
+                    "layout": f"{d['view']}, neighbours {d['nb']}, {d['agg']}",
+                    "env": float(d["env"].replace(",", "")),
+                    "agent": float(d["agent"].replace(",", "")),
+                    "compile": float(d["compile"]),
+                    "rss": float(d["rss"]),
+                }
+            )
+    return rows
+
+
+def arm(folder: Path) -> dict:
+    cfg = json.loads((folder / "checkpoint" / "config.json").read_text())
+    cfg = cfg.get("config", cfg)
+    k = cfg["env"]["num_agents"]
+    runs = json.loads((folder / "results.json").read_text())["runs"]
+    out = {"name": folder.name, "K": k, "seeds": len(runs), "updates": cfg["num_updates"]}
+    for metric in ("success_rate", "group_reward", "bits_per_step", "links_per_step"):
+        vals = np.array([r.get(metric, np.nan) for r in runs], float)
+        if metric == "bits_per_step":
+            metric, vals = "bits_per_agent_step", vals / k
+        if np.isnan(vals).all():
+            continue
+        est, lo, hi = bootstrap_ci(vals) if np.ptp(vals) > 0 else (vals.mean(),) * 3
+        out[metric] = (float(est), float(lo), float(hi))
+    out["curves"] = read_csv(folder / "metrics.csv")
+    return out
+
+
+def main(a: Args) -> None:
+    a.out.mkdir(parents=True, exist_ok=True)
+    lines = []
+    if a.throughput is not None:
+        rows = throughput_rows(a.throughput)
+        lines += [
+            "| K | layout | env steps/s | agent steps/s | compile (s) | peak RSS (GiB) |",
+            "|---|---|---|---|---|---|",
+        ]
+        for r in rows:
+            lines.append(
+                f"| {r['K']} | {r['layout']} | {r['env']:,.0f} | {r['agent']:,.0f} | "
+                f"{r['compile']:.0f} | {r['rss']:.2f} |"
+            )
+        fig, ax = plt.subplots(1, 2, figsize=(9, 3.4))
+        for layout in sorted({r["layout"] for r in rows}):
+            sel = sorted((r for r in rows if r["layout"] == layout), key=lambda r: r["K"])
+            ks = [r["K"] for r in sel]
+            ax[0].plot(ks, [r["agent"] for r in sel], "o-", label=layout)
+            ax[1].plot(ks, [r["rss"] for r in sel], "o-", label=layout)
+        ax[0].set(xlabel="agents K", ylabel="agent steps/s (training update)", yscale="log")
+        ax[1].set(xlabel="agents K", ylabel="peak RSS (GiB)")
+        ax[0].legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(a.out / "throughput.png", dpi=120)
+        lines.append("")
+    if a.runs:
+        arms = [arm(f) for f in a.runs]
+        lines += [
+            "| arm | K | updates | seeds | success | group reward | bits/agent/step | links/step |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+
+        def fmt(x, digits):
+            if x is None:
+                return "-"
+            return f"{x[0]:.{digits}f} [{x[1]:.{digits}f}, {x[2]:.{digits}f}]"
+
+        for r in arms:
+            lines.append(
+                f"| {r['name']} | {r['K']} | {r['updates']} | {r['seeds']} | "
+                f"{fmt(r.get('success_rate'), 3)} | "
+                f"{fmt(r.get('group_reward'), 0)} | {fmt(r.get('bits_per_agent_step'), 1)} | "
+                f"{fmt(r.get('links_per_step'), 1)} |"
+            )
+        fig, ax = plt.subplots(1, 3, figsize=(12, 3.4))
+        for r in arms:
+            if any(
+                o is not r
+                and o["name"].startswith(r["name"].rsplit("_", 1)[0])
+                and o["updates"] > r["updates"]
+                and o["K"] == r["K"]
+                for o in arms
+            ):
+                continue  # a prefix of a longer run of the same arm: its curve is drawn there
+            c = r["curves"]
+            for i, metric in enumerate(("group_reward", "success_rate", "bits_per_step")):
+                per_seed = [c[metric][c["seed"] == s] for s in np.unique(c["seed"])]
+                n = min(len(v) for v in per_seed)
+                mean = np.mean([v[:n] for v in per_seed], 0)
+                if metric != "success_rate":
+                    mean = mean / r["K"]
+                label = f"{r['name']} ({r['seeds']} seeds)"
+                ax[i].plot(np.arange(1, n + 1), smooth(mean, 10), label=label)
+        names = ("group reward / agent", "success rate", "bits / agent / step")
+        for i, name in enumerate(names):
+            ax[i].set(xlabel="update (32 episodes of 64 steps)", ylabel=name)
+        ax[0].legend(fontsize=7)
+        fig.tight_layout()
+        fig.savefig(a.out / "learning.png", dpi=120)
+    (a.out / "tables.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))
