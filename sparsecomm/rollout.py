@@ -109,8 +109,9 @@ def rollout(
     """
     k = env.num_agents
     num_steps = env.config.max_steps
-    k_reset, k_chan, k_act, k_env, k_exp, k_mix = jax.random.split(key, 6)
-    obs, state = jax.vmap(env.reset)(jax.random.split(k_reset, num_envs))
+    reset_keys, env_keys = world_draws(key, num_envs, num_steps)
+    chan_keys, gumbel = agent_draws(key, num_envs, num_steps, k, team.num_actions)
+    obs, state = jax.vmap(env.reset)(reset_keys)
     c = channel_cfg.num_elements
     msgs = jnp.zeros((num_envs, k, (k - 1) * c), jnp.float32)
     prev = jnp.zeros((num_envs, k, k - 1, c), jnp.int32)  # each link's symbols at t - 1
@@ -120,16 +121,16 @@ def rollout(
     heard = jnp.zeros((num_envs, k, k - 1), bool) if masked else None
     expert_carry = expert.init(num_envs) if expert is not None else None
     # All the step's randomness is drawn before the loop, in a few large vectorised draws.
-    chan_keys = jax.random.split(k_chan, num_envs)
     noise = {
         "t": jnp.arange(num_steps),
-        "env": jax.random.split(k_env, (num_steps, num_envs)),
-        "gumbel": jax.random.gumbel(k_act, (num_steps, num_envs, k, team.num_actions)),
+        "env": env_keys,
+        "gumbel": gumbel,
         "dither": channel.link_dither(channel_cfg, chan_keys, num_steps, k),
     }
     if expert is not None:
-        noise["expert"] = jax.random.split(k_exp, num_steps)
-        noise["mix"] = jax.random.uniform(k_mix, (num_steps, num_envs, 1))
+        keys = _batch_keys(key)
+        noise["expert"] = jax.random.split(keys["expert"], num_steps)
+        noise["mix"] = jax.random.uniform(keys["mix"], (num_steps, num_envs, 1))
     wire = _Wire(channel_cfg, key, num_envs, k, num_steps) if _noisy(channel_cfg) else None
     if wire is not None:
         noise["loss"] = wire.step_keys
@@ -209,6 +210,34 @@ def rollout(
     init = (state, obs, msgs, carry, expert_carry, prev, wire_state, heard)
     _, traj = jax.lax.scan(step, init, noise)
     return traj
+
+
+def _batch_keys(key: jax.Array) -> dict[str, jax.Array]:
+    """The six keys of a batch of episodes, by name, in the order the rollout splits them."""
+    names = ("reset", "chan", "act", "env", "expert", "mix")
+    return dict(zip(names, jax.random.split(key, len(names)), strict=True))
+
+
+def world_draws(key: jax.Array, num_envs: int, num_steps: int) -> tuple[jax.Array, jax.Array]:
+    """The world's randomness in :func:`rollout` of the batch ``key``: each episode's reset key
+    (N,) and every step's environment keys (T, N). A deployed world draws the same
+    (``sparsecomm.deploy``), so it plays the very episodes of ``sparsecomm eval``."""
+    keys = _batch_keys(key)
+    return (
+        jax.random.split(keys["reset"], num_envs),
+        jax.random.split(keys["env"], (num_steps, num_envs)),
+    )
+
+
+def agent_draws(
+    key: jax.Array, num_envs: int, num_steps: int, num_agents: int, num_actions: int
+) -> tuple[jax.Array, jax.Array]:
+    """The agents' randomness in :func:`rollout` of the batch ``key``: each episode's channel
+    key (N,), from which every link's dither is drawn (``channel.dither_key``), and the Gumbel
+    noise of every action (T, N, K, A). Every deployed agent draws the same."""
+    keys = _batch_keys(key)
+    gumbel = jax.random.gumbel(keys["act"], (num_steps, num_envs, num_agents, num_actions))
+    return jax.random.split(keys["chan"], num_envs), gumbel
 
 
 def _only_live(sent: channel.Sent, live: jax.Array) -> channel.Sent:

@@ -2,7 +2,7 @@
 agent's step, one receiver's reconstruction and the world's step (no sockets here).
 
 Every process regenerates the randomness of ``sparsecomm.rollout.rollout`` from the batch key
-alone (:func:`episode_draws`: the same six key splits), so a deployed team plays the very
+alone (:func:`episode_draws`: the rollout's own draws), so a deployed team plays the very
 episodes ``sparsecomm eval`` plays: episode ``b`` of a batch of ``N`` starts from
 ``reset[b]``, agent ``i`` acts with the Gumbel noise ``gumbel[t, b, i]``, the world steps with
 ``env[t, b]``, and link ``i -> j`` at step ``t`` is quantized by the sender and reconstructed
@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from sparsecomm import channel
+from sparsecomm import channel, rollout
 from sparsecomm.channel import ChannelConfig
 from sparsecomm.configs import ILConfig, RLConfig, from_dict
 from sparsecomm.envs.navigation import NavigationEnv
@@ -102,31 +102,20 @@ class Draws(NamedTuple):
 def episode_draws(
     key: jax.Array, num_episodes: int, num_steps: int, num_agents: int, num_actions: int
 ) -> Draws:
-    """The draws of ``rollout(team, env, cfg, params, key, num_episodes)`` (its six key splits,
-    in its order; the expert's two are unused). Kept in step with ``sparsecomm.rollout`` by
-    tests/test_deploy.py, which checks a deployed batch against ``sparsecomm eval`` episode for
-    episode. The world needs ``reset`` and ``env`` only (:func:`world_draws`), an agent
-    ``chan`` and ``gumbel`` (:func:`agent_draws`): each is one compiled program."""
+    """The draws of ``rollout(team, env, cfg, params, key, num_episodes)``: the rollout's own
+    functions (``rollout.world_draws``, ``rollout.agent_draws``), so the two cannot drift. The
+    world needs ``reset`` and ``env`` only (:func:`world_draws`), an agent ``chan`` and
+    ``gumbel`` (:func:`agent_draws`): each is one compiled program."""
     world = world_draws(key, num_episodes, num_steps)
     agents = agent_draws(key, num_episodes, num_steps, num_agents, num_actions)
     return Draws(world[0], agents[0], agents[1], world[1])
 
 
-@functools.partial(jax.jit, static_argnums=(1, 2))
-def world_draws(key: jax.Array, num_episodes: int, num_steps: int):
-    """``(reset (N,), env (T, N))`` keys, as :func:`episode_draws`."""
-    k_reset, _, _, k_env, _, _ = jax.random.split(key, 6)
-    return jax.random.split(k_reset, num_episodes), jax.random.split(
-        k_env, (num_steps, num_episodes)
-    )
+world_draws = jax.jit(rollout.world_draws, static_argnums=(1, 2))
+"""``(reset (N,), env (T, N))`` keys, as :func:`episode_draws` (``rollout.world_draws``)."""
 
-
-@functools.partial(jax.jit, static_argnums=(1, 2, 3, 4))
-def agent_draws(key, num_episodes: int, num_steps: int, num_agents: int, num_actions: int):
-    """``(chan (N,), gumbel (T, N, K, A))``, as :func:`episode_draws`."""
-    _, k_chan, k_act, _, _, _ = jax.random.split(key, 6)
-    shape = (num_steps, num_episodes, num_agents, num_actions)
-    return jax.random.split(k_chan, num_episodes), jax.random.gumbel(k_act, shape)
+agent_draws = jax.jit(rollout.agent_draws, static_argnums=(1, 2, 3, 4))
+"""``(chan (N,), gumbel (T, N, K, A))``, as :func:`episode_draws` (``rollout.agent_draws``)."""
 
 
 def use_compile_cache(folder: str) -> None:
