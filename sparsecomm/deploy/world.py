@@ -169,12 +169,7 @@ class World:
         }
         sums = dict.fromkeys(
             (
-                "payload_bits",
-                "sim_wire_bits",
-                "packet_bits",
-                "datagram_bytes",
-                "sent_bytes",
-                "sent_datagrams",
+                *LINK_FIELDS[4:],  # the links' counts, summed over the episode
                 "datagrams",
                 "missing",
                 "dup",
