@@ -31,6 +31,7 @@ SETTINGS = {
     "erasure 0.2": (NoiseConfig(erasure=0.2, on_drop="null"), "none"),
     "erasure 0.4": (NoiseConfig(erasure=0.4, on_drop="null"), "none"),
     "erasure 0.2, last": (NoiseConfig(erasure=0.2, on_drop="last"), "none"),
+    "erasure 0.4, last": (NoiseConfig(erasure=0.4, on_drop="last"), "none"),
     "flip 1e-3": (NoiseConfig(flip=1e-3, on_drop="null"), "none"),
     "flip 1e-2": (NoiseConfig(flip=1e-2, on_drop="null"), "none"),
     "flip 5e-2": (NoiseConfig(flip=5e-2, on_drop="null"), "none"),
@@ -72,7 +73,17 @@ def framed(channel, noise: NoiseConfig, framing: str):
 class Args:
     runs: tuple[Path, ...]
     """Run folders (every run of each is evaluated)."""
-    settings: tuple[str, ...] = tuple(list(SETTINGS)[:9])
+    settings: tuple[str, ...] = (
+        "clean",
+        "erasure 0.1",
+        "erasure 0.2",
+        "erasure 0.4",
+        "erasure 0.2, last",
+        "flip 1e-3",
+        "flip 1e-2",
+        "flip 5e-2",
+        "burst",
+    )
     """Names of the noise settings to evaluate (keys of ``SETTINGS``)."""
     episodes: int = 500
     """Evaluation episodes per run and setting."""
