@@ -45,8 +45,10 @@ import numpy as np
 from sparsecomm.channel.codes import Code, as_code, payload_bits, wire_bits
 from sparsecomm.channel.fitted import FittedCode
 from sparsecomm.channel.gate import gate as apply_gate
-from sparsecomm.channel.penalty import bit_penalty, expected_bits
+from sparsecomm.channel.penalty import code_penalty
 from sparsecomm.channel.quantizer import (
+    MAX_AGENTS,
+    MAX_STEPS,
     check_levels,
     check_unit_interval,
     dequantize,
@@ -56,11 +58,6 @@ from sparsecomm.channel.quantizer import (
 )
 
 __all__ = ["Messages", "Routing", "reconstruct", "send"]
-
-MAX_AGENTS = 1024
-"""Most agents a team may have: ``dither_key`` keeps links distinct for agents below 1024."""
-MAX_STEPS = 4096
-"""Steps ``t`` must lie in ``[0, MAX_STEPS)``: ``dither_key`` keeps steps distinct below 4096."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -273,12 +270,6 @@ def _over_links(fn, key: jax.Array, t: jax.Array, num_agents: int, *arrays):
     return out.reshape(*batch, num_agents, num_agents, *out.shape[1:])
 
 
-def _penalty(z: jax.Array, levels: int, code) -> jax.Array:
-    if isinstance(code, Code) and code.remap:
-        return expected_bits(z, levels, code.lengths())
-    return bit_penalty(z, levels)
-
-
 def send(
     key: jax.Array,
     z: jax.Array,
@@ -355,7 +346,7 @@ def _send(key, z, mask, t, prev, levels: int, code) -> Messages:
     m, z_hat = quantize_dithered(z_sent, u, levels)
     m = jnp.where(live, m, 0)
     z_hat = jnp.where(live, z_hat, 0.0)
-    penalty = jnp.where(mask, _penalty(z_sent, levels, code).sum(-1), 0.0)
+    penalty = jnp.where(mask, code_penalty(z_sent, levels, code).sum(-1), 0.0)
     payload = jnp.where(mask, payload_bits(m, code).sum(-1), 0).astype(jnp.int32)
     wire = jnp.where(mask, wire_bits(m, code, prev=prev), 0).astype(jnp.int32)
     inbox = jnp.swapaxes(z_hat, -3, -2)

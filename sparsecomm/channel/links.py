@@ -30,9 +30,16 @@ from sparsecomm.channel.ecc import ECC_NAMES
 from sparsecomm.channel.ecc import wire_bits as ecc_bits
 from sparsecomm.channel.fitted import FittedCode
 from sparsecomm.channel.noise import NoiseConfig
-from sparsecomm.channel.penalty import bit_penalty, expected_bits
+from sparsecomm.channel.penalty import code_penalty
 from sparsecomm.channel.permuted import packet_bits as permuted_bits
-from sparsecomm.channel.quantizer import check_levels, dither, dither_key, quantize_dithered
+from sparsecomm.channel.quantizer import (
+    MAX_AGENTS,
+    MAX_STEPS,
+    check_levels,
+    dither,
+    dither_key,
+    quantize_dithered,
+)
 
 CHANNEL_MODES = ("discrete", "continuous", "off", "reinforced")
 CHANNEL_CODES = (*CODE_NAMES[:2], "fitted", "remapped", "permuted")
@@ -131,10 +138,7 @@ class ChannelConfig:
         """The differentiable bit cost of each element of signals ``z`` (..., C): the paper's
         ``log2(levels z + 1)``, or for a learned (``remapped``) code the exact expected bits
         of its codewords (``channel.expected_bits``)."""
-        code = self.code_obj
-        if isinstance(code, Code) and code.remap:
-            return expected_bits(z, self.levels, code.lengths())
-        return bit_penalty(z, self.levels)
+        return code_penalty(z, self.levels, self.code_obj)
 
     def max_bits_per_step(self, num_agents: int) -> int:
         """The most payload bits a team of ``num_agents`` can send in one step: every element of
@@ -208,9 +212,9 @@ def link_dither(cfg: ChannelConfig, keys: jax.Array, num_steps: int, num_agents:
     """:func:`step_dither` of every step, (T, B, K, K-1, C), in one vectorised draw."""
     if cfg.mode != "discrete":
         return None
-    if num_steps > 4096 or num_agents > 1024:
+    if num_steps > MAX_STEPS or num_agents > MAX_AGENTS:
         raise ValueError(
-            f"the dither keys support max_steps <= 4096 and num_agents <= 1024, got "
+            f"the dither keys support max_steps <= {MAX_STEPS} and num_agents <= {MAX_AGENTS}, got "
             f"{num_steps} and {num_agents}"
         )
     return jax.vmap(lambda t: step_dither(cfg, keys, t, num_agents))(jnp.arange(num_steps))

@@ -44,3 +44,12 @@ def expected_bits(z: jax.Array, levels: int, lengths) -> jax.Array:
     table = jnp.asarray(lengths, jnp.float32)
     k = jnp.arange(table.shape[0])
     return (1.0 - frac) * table[k, lo] + frac * table[k, hi]
+
+
+def code_penalty(z: jax.Array, levels: int, code) -> jax.Array:
+    """The differentiable bit cost of each element of ``z`` under ``code``: the paper's
+    :func:`bit_penalty`, or for a learned code (a ``channel.Code`` with ``remap``) the exact
+    expected bits of its codewords (:func:`expected_bits`)."""
+    if getattr(code, "remap", ()):
+        return expected_bits(z, levels, code.lengths())
+    return bit_penalty(z, levels)

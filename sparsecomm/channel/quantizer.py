@@ -66,6 +66,12 @@ def check_unit_interval(z, name: str = "z") -> None:
         raise ValueError(f"{name} must lie in [0, 1], got values in [{lo}, {hi}]")
 
 
+MAX_AGENTS = 1024
+"""Most agents a team may have: :func:`dither_key` keeps links distinct below 1024 agents."""
+MAX_STEPS = 4096
+"""Steps ``t`` lie in ``[0, MAX_STEPS)``: :func:`dither_key` keeps steps distinct below 4096."""
+
+
 def dither_key(key: jax.Array, t, sender, recipient) -> jax.Array:
     """The shared key of one link at one step: ``key`` folded with the link-step index.
 
