@@ -32,6 +32,7 @@ SETTINGS = {
     "erasure 0.4": (NoiseConfig(erasure=0.4, on_drop="null"), "none"),
     "erasure 0.2, last": (NoiseConfig(erasure=0.2, on_drop="last"), "none"),
     "erasure 0.4, last": (NoiseConfig(erasure=0.4, on_drop="last"), "none"),
+    "erasure 0.1, last": (NoiseConfig(erasure=0.1, on_drop="last"), "none"),
     "flip 1e-3": (NoiseConfig(flip=1e-3, on_drop="null"), "none"),
     "flip 1e-2": (NoiseConfig(flip=1e-2, on_drop="null"), "none"),
     "flip 5e-2": (NoiseConfig(flip=5e-2, on_drop="null"), "none"),
