@@ -118,6 +118,13 @@ class BudgetConfig:
     and the price start out even. 1.0 silenced every team at the engaging weight within ~75
     updates on the CPU preset (docs/budget.md)."""
 
+    per_link: bool = False
+    """Count ``bits`` (and the target, and the bits the controller measures) per link that
+    exists, per step, instead of for the whole team: the controller sees the team's payload bits
+    per step divided by its links per step (``links_per_step`` of a routed team,
+    ``sparsecomm.scaling``; K (K - 1) for a full team). A budget of b bits per link then holds
+    whatever the team's size and routing. ours: False (the team's count, as the paper's bits)."""
+
     def __post_init__(self):
         if self.bits is not None:
             check_budget(self.bits, "BudgetConfig.bits")
@@ -213,9 +220,20 @@ def log(state: BudgetState, price) -> dict[str, jax.Array]:
     return {"price": price, "bit_target": jnp.where(has_budget(state), state.target, jnp.nan)}
 
 
+def measured_bits(cfg: BudgetConfig, metrics: dict, num_agents: int) -> jax.Array:
+    """The bits an update's episodes sent, in the budget's units: the team's payload bits per
+    step, or per link that existed (``BudgetConfig.per_link``)."""
+    bits = metrics["bits_per_step"]
+    if not cfg.per_link:
+        return bits
+    links = metrics.get("links_per_step", num_agents * (num_agents - 1))
+    return bits / jnp.maximum(links, 1e-6)
+
+
 def update(cfg: BudgetConfig, state: BudgetState, bits, success) -> BudgetState:
     """One controller step after a gradient update whose episodes sent ``bits`` payload bits per
-    step at batch success rate ``success`` (both measured, not surrogates)."""
+    step (:func:`measured_bits`) at batch success rate ``success`` (both measured, not
+    surrogates)."""
     bits = jnp.asarray(bits, jnp.float32)
     ema = (1 - cfg.success_ema) * state.success + cfg.success_ema * success
     best = jnp.maximum(state.best, ema)

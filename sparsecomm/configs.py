@@ -272,7 +272,10 @@ def check_budget_fits(config, budgets=None, name: str = "budget.bits") -> None:
             f"{owner}.{name} needs channel.mode 'discrete' (the only mode with a bit penalty), "
             f"got channel.mode {config.channel.mode!r}"
         )
-    most = config.channel.max_bits_per_step(config.env.num_agents)
+    k = config.env.num_agents
+    most = config.channel.max_bits_per_step(k)
+    if config.budget.per_link:
+        most = most // (k * (k - 1))
     for b in budgets:
         check_budget(b, f"{owner}.{name}", most)
 

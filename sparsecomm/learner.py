@@ -30,6 +30,7 @@ from sparsecomm import budget as bit_budget
 from sparsecomm.agents import Team
 from sparsecomm.envs.navigation import NavigationEnv
 from sparsecomm.rollout import Expert, episode_metrics, rollout
+from sparsecomm.scaling import check_fits
 
 
 class LearnerState(struct.PyTreeNode):
@@ -60,9 +61,17 @@ class Learner:
     expert: Expert | None = None
 
 
-def make_team(config) -> tuple[NavigationEnv, Team]:
-    """The task and the team of a learner's config (``env``, ``agent``, ``channel``)."""
-    env = NavigationEnv(config.env)
+def make_team(config, env=None) -> tuple[NavigationEnv, Team]:
+    """The task and the team of a learner's config (``env``, ``agent``, ``channel``).
+
+    ``env``: another task to use instead of ``NavigationEnv(config.env)``, with its interface
+    (``reset``, ``step``, ``global_state``, ``num_agents``, ``obs_dim``, ``num_actions``,
+    ``state_dim``, ``config.max_steps``; e.g. ``sparsecomm.envs.jaxmarl_reference``);
+    ``config.env`` is then unused."""
+    if env is None:
+        env = NavigationEnv(config.env)
+    else:
+        check_fits(config.agent, env.num_agents)
     team = Team(
         config.agent,
         env.num_agents,
@@ -127,7 +136,7 @@ def make_learner(
         controller = bit_budget.update(
             config.budget,
             state.budget,
-            metrics["bits_per_step"],
+            bit_budget.measured_bits(config.budget, metrics, env.num_agents),
             success_of(metrics, state.update),
         )
         metrics.update(bit_budget.log(state.budget, price))

@@ -92,8 +92,9 @@ def clip_each_part(max_norm: float) -> optax.GradientTransformation:
     )
 
 
-def make_train(config: RLConfig) -> Learner:
-    env, team = make_team(config)
+def make_train(config: RLConfig, env=None) -> Learner:
+    """The learner of ``config``; ``env``: another task than ``config.env`` (``make_team``)."""
+    env, team = make_team(config, env)
     tx = optax.chain(clip_each_part(config.max_grad_norm), optax.adam(config.lr))
 
     def loss_fn(params, key, lam, update):

@@ -264,3 +264,32 @@ def test_checkpoint_from_before_the_relief_floor_loads_with_held_at_the_current_
     back = checkpoint.load(tmp_path / "ckpt", state)
     assert float(back["budget"].held) == -2.0
     assert float(back["budget"].log_weight) == -2.0
+
+
+@pytest.mark.parametrize("routed", [False, True])
+def test_a_per_link_budget_counts_the_bits_of_each_link_that_exists(routed, fast_compile):
+    """With ``per_link`` the controller engages from the team's bits per step divided by its
+    links per step (K (K - 1) for a full team, the live links of a routed one), and the most a
+    budget can ask is one link's most."""
+    k = 4
+    agent = AgentConfig(hidden=8, gru=8, critic_hidden=8, neighbours=1 if routed else None)
+    per_link = dataclasses.replace(FAST, per_link=True)
+    links = k if routed else k * (k - 1)
+    starts = {}
+    for cfg in (FAST, per_link):
+        rl = RLConfig(
+            env=NavConfig(num_agents=k, max_steps=8),
+            agent=agent,
+            num_envs=4,
+            num_updates=1,
+            budget=cfg,
+        )
+        state, m = jax.jit(make_train(rl).train)(jax.random.key(0), 0.0, 0.5)
+        bits = float(m["bits_per_step"][0])
+        if routed:
+            assert float(m["links_per_step"][0]) == links  # one heard sender per agent
+        starts[cfg.per_link] = float(state.budget.start)
+        assert bits > links  # both engage above the budget, from what the team sent
+    np.testing.assert_allclose(starts[True], starts[False] / links, rtol=1e-6)
+    with pytest.raises(ValueError, match="RLConfig.budget.bits must be <= 40"):
+        RLConfig(env=NavConfig(num_agents=k), budget=BudgetConfig(bits=41.0, per_link=True))
