@@ -154,8 +154,8 @@ def run_arm(a: Args, comm: str, budget: float | None) -> dict:
         ci = bootstrap_ci(vals) if np.ptp(vals) > 0 else (vals.mean(),) * 3
         row[metric] = [float(x) for x in ci]
         row[f"{metric}_per_seed"] = vals.tolist()
-    row["curves"] = {
-        k: np.asarray(curves[k]).mean(0).tolist()
+    row["curves"] = {  # mean over seeds per update, 4 decimals (for the figure)
+        k: np.round(np.asarray(curves[k]).mean(0), 4).tolist()
         for k in ("group_reward", "success_rate", "bits_per_step")
     }
     print(
@@ -203,7 +203,7 @@ def main(a: Args) -> None:
         "env_steps_per_run": a.num_updates * a.num_envs * 25,
         "rows": rows,
     }
-    (a.out / "reference.json").write_text(json.dumps(doc, indent=1) + "\n")
+    (a.out / "reference.json").write_text(json.dumps(doc) + "\n")
     plot(rows, a, a.out / "reference.png")
     print(f"-> {a.out / 'reference.json'}, {a.out / 'reference.png'}")
 
