@@ -57,15 +57,18 @@ def parse(argv: list[str]):
     import tyro
 
     preset, argv = _take_preset(argv)
-    if preset is not None:  # ``sparsecomm train --preset NAME [--config.* ...]``
-        if preset not in PRESETS or not argv or argv[0] != "train":
+    if preset is not None:  # ``sparsecomm train|imitate --preset NAME [--config.* ...]``
+        command = argv[0] if argv else None
+        if preset not in PRESETS or command not in PRESETS[preset]:
             raise ValueError(
-                f"--preset must be one of {sorted(PRESETS)} and follow 'sparsecomm train', "
-                f"got {preset!r}"
+                f"--preset must be one of {sorted(PRESETS)} and follow 'sparsecomm train' or "
+                f"'sparsecomm imitate', got {preset!r}" + (f" after {command!r}" if command else "")
             )
-        default = Train(config=PRESETS[preset], out=Path("runs") / preset)
-        prog = f"sparsecomm train --preset {preset}"
-        return tyro.cli(Train, default=default, args=argv[1:], prog=prog)
+        cls = COMMANDS[command][0]
+        out = Path("runs") / (preset if command == "train" else f"{command}_{preset}")
+        default = cls(config=PRESETS[preset][command], out=out)
+        prog = f"sparsecomm {command} --preset {preset}"
+        return tyro.cli(cls, default=default, args=argv[1:], prog=prog)
     commands = {name: cls for name, (cls, _) in COMMANDS.items()}
     return tyro.extras.subcommand_cli_from_dict(commands, args=argv)
 

@@ -287,16 +287,27 @@ succeeds in every one of 4000 episodes (11.6 steps on average); the default lear
 episodes per update reaches success >= 0.9 on 19 of 20 seeds in 600 updates (2.5M env steps per
 run, docs/budget.md)."""
 
-PRESETS: dict[str, RLConfig] = {
-    "small": RLConfig(
-        env=SMALL_TASK,
-        agent=AgentConfig(message_gate="hard"),
-        budget=BudgetConfig(bits=16.0),
-        num_envs=64,
-        num_updates=800,
-    ),
+PRESETS: dict[str, dict[str, RLConfig | ILConfig]] = {
+    "small": {
+        "train": RLConfig(
+            env=SMALL_TASK,
+            agent=AgentConfig(message_gate="hard"),
+            budget=BudgetConfig(bits=16.0),
+            num_envs=64,
+            num_updates=800,
+        ),
+        "imitate": ILConfig(
+            env=SMALL_TASK,
+            agent=AgentConfig(message_gate="hard"),
+            budget=dataclasses.replace(ILConfig.budget, bits=16.0),
+            num_envs=64,
+            num_updates=800,
+        ),
+    },
 }
-"""Named starting points for ``sparsecomm train --preset NAME`` (``--config.*`` flags still
-override them). ``small``: :data:`SMALL_TASK`, the hard message gate and a budget of 16 payload
-bits per step (lambda 0 sends ~52; with the default controller 10 untuned seeds reached 0.989
-success at 17.5 bits, docs/budget.md); the README's first command."""
+"""Named starting points for ``sparsecomm train --preset NAME`` and ``sparsecomm imitate
+--preset NAME`` (``--config.*`` flags still override them). ``small``: :data:`SMALL_TASK`, the
+hard message gate and a budget of 16 payload bits per step, 64 episodes per update for 800
+updates. RL (the README's first command): lambda 0 sends ~52 bits; with the default controller
+10 untuned seeds reached 0.989 success at 17.5 bits. Imitation of the oracle: 3-4 minutes for
+three seeds on 2 CPU cores (docs/budget.md)."""

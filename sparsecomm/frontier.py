@@ -6,7 +6,9 @@ Reads the ``results.json`` of trained sweeps (``sparsecomm train|imitate --budge
 - ``summary.json``: a list of rows ``{"learner": "rl"|"imitation", "budget": float|null,
   "lam": float, "seeds": int, "success": [mean, lo, hi], "payload_bits": [...],
   "wire_bits": [...], "episode_length": [...]}``, one per (learner, budget, lambda) group, over
-  its seeds (95% CIs of :func:`sparsecomm.stats.bootstrap_ci`);
+  its seeds (95% CIs of :func:`sparsecomm.stats.bootstrap_ci`), and a ``"series"`` field where
+  the sweep was given a name (say ``"small task, oracle"``: runs of one learner on different
+  tasks or experts are separate series, each compared with its own lambda-0 row);
 - ``frontier.png``: success against payload bits and against wire bits per step, budgets joined
   by a line, fixed-lambda points beside them;
 - the budget-matched verdicts of the paper's claims 4 and 5 (:func:`budget_claims`) and the
@@ -15,6 +17,7 @@ Reads the ``results.json`` of trained sweeps (``sparsecomm train|imitate --budge
 Command line (the numbers of docs/budget.md)::
 
     python -m sparsecomm.frontier --rl RUN/results.json --il RUN/results.json --out FOLDER
+    python -m sparsecomm.frontier --il "small task, oracle=RUN/results.json" ...  # a named series
 """
 
 from __future__ import annotations
@@ -42,26 +45,41 @@ within ``TARGET_BITS_TOL`` of the budget; stretch: budget 8 at the same success.
 TARGET_SUCCESS, TARGET_BITS_TOL = 0.95, 0.10
 
 
-def rows(results: dict, learner: str) -> list[dict]:
-    """The frontier rows of one sweep's ``results.json`` (its ``runs`` list)."""
+def rows(results: dict, learner: str, series: str | None = None) -> list[dict]:
+    """The frontier rows of one sweep's ``results.json`` (its ``runs`` list), in ``series`` if
+    given."""
     groups: dict[tuple, list[dict]] = {}
     for run in results["runs"]:
         groups.setdefault((run.get("budget"), float(run["lam"])), []).append(run)
     out = []
     for (budget, lam), runs in groups.items():
         row = {"learner": learner, "budget": budget, "lam": lam, "seeds": len(runs)}
+        if series is not None:
+            row["series"] = series
         for name, metric in COLUMNS.items():
             row[name] = list(bootstrap_ci([r[metric] for r in runs]))
         out.append(row)
     return out
 
 
-def reference(table: list[dict], learner: str) -> dict | None:
-    """The learner's lambda-0 row without a budget (what the budgets are compared with)."""
+def series_of(table: list[dict]) -> list[tuple[str, str | None]]:
+    """The ``(learner, series)`` pairs of a table, in order of first appearance."""
+    return list(dict.fromkeys((r["learner"], r.get("series")) for r in table))
+
+
+def _in(table: list[dict], learner: str, series: str | None) -> list[dict]:
+    return [r for r in table if r["learner"] == learner and r.get("series") == series]
+
+
+def reference(table: list[dict], learner: str, series: str | None = None) -> dict | None:
+    """The series' lambda-0 row without a budget (what its budgets are compared with)."""
     return next(
-        (r for r in table if r["learner"] == learner and r["budget"] is None and r["lam"] == 0),
-        None,
+        (r for r in _in(table, learner, series) if r["budget"] is None and r["lam"] == 0), None
     )
+
+
+def _label(learner: str, series: str | None) -> str:
+    return learner if series is None else f"{learner}, {series}"
 
 
 def _stats(row: dict) -> dict:
@@ -82,9 +100,10 @@ def budget_claims(table: list[dict]) -> list[dict]:
     its bits losing at most ``IL_SUCCESS_TOL`` success.
     """
     out = []
-    for number, learner in ((4, "rl"), (5, "imitation")):
-        ref = reference(table, learner)
-        budgets = [r for r in table if r["learner"] == learner and r["budget"] is not None]
+    for learner, series in series_of(table):
+        number = 4 if learner == "rl" else 5
+        ref = reference(table, learner, series)
+        budgets = [r for r in _in(table, learner, series) if r["budget"] is not None]
         if ref is None or not budgets:
             continue
         good = []
@@ -100,7 +119,8 @@ def budget_claims(table: list[dict]) -> list[dict]:
         out.append(
             {
                 "claim": number,
-                "label": f"claim {number} at budget-matched points ({learner})",
+                "label": f"claim {number} at budget-matched points ({_label(learner, series)})",
+                "series": series,
                 "held": bool(learned and good),
                 "budgets_held": good,
                 "evidence": "; ".join(_describe(r) for r in [ref, *budgets]),
@@ -113,10 +133,10 @@ def targets(table: list[dict]) -> list[dict]:
     """Issue 14's targets per learner: budget 16 (and the stretch, 8) at >= 95% of lambda 0's
     success, with final payload bits within 10% of the budget."""
     out = []
-    for learner in ("rl", "imitation"):
-        ref = reference(table, learner)
+    for learner, series in series_of(table):
+        ref = reference(table, learner, series)
         for goal in (TARGET_BUDGET, STRETCH_BUDGET):
-            row = next((r for r in table if r["learner"] == learner and r["budget"] == goal), None)
+            row = next((r for r in _in(table, learner, series) if r["budget"] == goal), None)
             if ref is None or row is None:
                 continue
             success_ok = row["success"][0] >= TARGET_SUCCESS * ref["success"][0]
@@ -124,6 +144,7 @@ def targets(table: list[dict]) -> list[dict]:
             out.append(
                 {
                     "learner": learner,
+                    "series": series,
                     "budget": goal,
                     "met": bool(success_ok and bits_ok),
                     "success_ratio": row["success"][0] / max(ref["success"][0], 1e-9),
@@ -149,22 +170,23 @@ def plot(table: list[dict], out_png: str | Path, title: str | None = None) -> Pa
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    colours = {"rl": "tab:blue", "imitation": "tab:orange"}
+    palette = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
+    colours = {key: palette[i % len(palette)] for i, key in enumerate(series_of(table))}
     fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
     for ax, bits in zip(axes, ("payload_bits", "wire_bits"), strict=True):
-        for learner, colour in colours.items():
+        for (learner, series), colour in colours.items():
             for kind, marker in (("budget", "o"), ("lam", "s")):
                 sel = [
                     r
-                    for r in table
-                    if r["learner"] == learner and (r["budget"] is not None) == (kind == "budget")
+                    for r in _in(table, learner, series)
+                    if (r["budget"] is not None) == (kind == "budget")
                 ]
                 if not sel:
                     continue
                 sel.sort(key=lambda r: r[bits][0])
                 x = np.array([r[bits] for r in sel])
                 y = np.array([r["success"] for r in sel])
-                label = f"{learner}, {'budgets' if kind == 'budget' else 'fixed λ'}"
+                label = f"{_label(learner, series)}: {'budgets' if kind == 'budget' else 'fixed λ'}"
                 ax.errorbar(
                     x[:, 0],
                     y[:, 0],
@@ -206,36 +228,48 @@ def write_rows(table: list[dict], path: str | Path) -> Path:
     return path
 
 
-def write(out: str | Path, sources: dict[str, list[dict]]) -> list[dict]:
-    """``summary.json`` and ``frontier.png`` in ``out`` from ``{learner: [results, ...]}``."""
+def write(out: str | Path, sources: dict[str, list]) -> list[dict]:
+    """``summary.json`` and ``frontier.png`` in ``out`` from ``{learner: [results, ...]}``; an
+    entry may be a ``(series, results)`` pair to name its series."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    table = [row for learner, docs in sources.items() for doc in docs for row in rows(doc, learner)]
+    table = []
+    for learner, docs in sources.items():
+        for doc in docs:
+            series, doc = doc if isinstance(doc, tuple) else (None, doc)
+            table += rows(doc, learner, series)
     write_rows(table, out / "summary.json")
     plot(table, out / "frontier.png")
     return table
 
 
+def _read(arg: str) -> tuple[str | None, dict]:
+    """``PATH`` or ``SERIES=PATH`` as ``(series, results)``."""
+    series, _, path = arg.rpartition("=")
+    return series or None, json.loads(Path(path).read_text())
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--rl", nargs="*", default=[], help="results.json of RL sweeps")
-    parser.add_argument("--il", nargs="*", default=[], help="results.json of imitation sweeps")
+    parser.add_argument(
+        "--rl", nargs="*", default=[], help="results.json of RL sweeps (SERIES=PATH names a series)"
+    )
+    parser.add_argument("--il", nargs="*", default=[], help="... of imitation sweeps")
     parser.add_argument("--out", required=True, help="folder for summary.json and frontier.png")
     args = parser.parse_args(argv)
-    sources = {
-        "rl": [json.loads(Path(p).read_text()) for p in args.rl],
-        "imitation": [json.loads(Path(p).read_text()) for p in args.il],
-    }
+    sources = {"rl": [_read(p) for p in args.rl], "imitation": [_read(p) for p in args.il]}
     table = write(args.out, sources)
     for r in table:
         print(
-            f"{r['learner']:9s} {_describe(r)}, wire {r['wire_bits'][0]:.3g} ({r['seeds']} seeds)"
+            f"{_label(r['learner'], r.get('series')):9s} {_describe(r)}, "
+            f"wire {r['wire_bits'][0]:.3g} ({r['seeds']} seeds)"
         )
     for c in budget_claims(table):
         print(f"{c['label']}: {'held' if c['held'] else 'not held'} {c['budgets_held']}")
     for t in targets(table):
         print(
-            f"target {t['learner']} budget {t['budget']:g}: {'met' if t['met'] else 'not met'}"
+            f"target {_label(t['learner'], t['series'])} budget {t['budget']:g}: "
+            f"{'met' if t['met'] else 'not met'}"
             f" (success {t['success_ratio']:.1%} of λ=0, bits {t['bits']:.3g})"
         )
 

@@ -7,7 +7,8 @@ import jax
 import numpy as np
 import pytest
 
-from sparsecomm.cli import main
+from sparsecomm.cli import main, parse
+from sparsecomm.configs import SMALL_TASK, ILConfig, RLConfig
 from sparsecomm.experiment import load_run
 
 TINY = [
@@ -56,6 +57,19 @@ def test_train_eval_render(tmp_path, fast_compile):
     main(["render", "--run", str(out), "--index", "3", "--out", str(tmp_path / "t.gif")])
     frames = iio.imread(tmp_path / "t.gif", index=None)
     assert frames.ndim == 4 and 2 <= frames.shape[0] <= 13
+
+
+@pytest.mark.parametrize("command, cls", [("train", RLConfig), ("imitate", ILConfig)])
+def test_the_small_preset_serves_both_learners(command, cls):
+    cmd = parse([command, "--preset", "small", "--config.num-updates", "7", "--seeds", "3"])
+    config = cmd.config
+    assert type(config) is cls and config.env == SMALL_TASK
+    assert config.budget.bits == 16.0 and config.agent.message_gate == "hard"
+    assert config.num_envs == 64 and config.num_updates == 7 and cmd.seeds == 3  # flags win
+    # Each learner keeps its own controller defaults: imitation's bounded relief, RL's none.
+    assert config.budget.relief_floor == cls.budget.relief_floor
+    assert config.budget.weight_init == cls.budget.weight_init
+    assert str(cmd.out) == ("runs/small" if command == "train" else "runs/imitate_small")
 
 
 @pytest.mark.slow

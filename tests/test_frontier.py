@@ -71,3 +71,21 @@ def test_curves_group_fixed_lambda_runs_once(tmp_path):
     assert list(groups)[0][1] == 0.0 and np.isnan(list(groups)[0][0]) and len(groups) == 2
     steps, vals = groups[list(groups)[1]]
     np.testing.assert_allclose(vals, [[0.2, 0.4, 0.6]] * 2)
+
+
+def test_each_series_is_judged_against_its_own_lambda_zero(tmp_path):
+    # The same budget 8 run: lost against a strong reference, kept against a weak one.
+    weak = _results([(None, 0.0, 0.52, 150.0, 80.0), (8.0, 0.0, 0.50, 8.0, 150.0)])
+    table = frontier.rows(IL, "imitation", "strong") + frontier.rows(weak, "imitation", "weak")
+    assert frontier.series_of(table) == [("imitation", "strong"), ("imitation", "weak")]
+    targets = {t["series"]: t for t in frontier.targets(table)}
+    assert not targets["strong"]["met"] and targets["weak"]["met"]
+    assert targets["weak"]["success_ratio"] == pytest.approx(0.50 / 0.52)
+    claims = {c["series"]: c for c in frontier.budget_claims(table)}
+    assert not claims["strong"]["held"] and claims["weak"]["budgets_held"] == [8.0]
+    # On the command line a series is named SERIES=PATH; rows keep the name.
+    path = tmp_path / "weak.json"
+    path.write_text(json.dumps(weak))
+    frontier.main(["--il", f"weak={path}", str(path), "--out", str(tmp_path / "f")])
+    rows = json.loads((tmp_path / "f" / "summary.json").read_text())
+    assert [r.get("series") for r in rows] == ["weak", "weak", None, None]

@@ -61,6 +61,7 @@ def _refused(argv, capsys, field):
         (["train", "--config.channel.levels", "0"], "ChannelConfig.levels"),
         (["train", "--config.budget.bits", "-1"], "BudgetConfig.bits"),
         (["train", "--preset", "nope"], "--preset"),
+        (["eval", "--preset", "small"], "--preset"),
     ],
 )
 def test_bad_input_is_refused_before_any_work(argv, field, capsys):
