@@ -164,7 +164,11 @@ def _describe(r: dict) -> str:
 
 
 def plot(table: list[dict], out_png: str | Path, title: str | None = None) -> Path:
-    """Success against payload and wire bits per step (symlog axis), 95% CIs as error bars."""
+    """Success against payload and wire bits per step (symlog axis), 95% CIs as error bars.
+
+    The top row shows every point; the bottom row zooms on the teams that work (success >= 0.5),
+    where the budgets and the gentle lambdas sit, and is left out when there are none.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -172,53 +176,74 @@ def plot(table: list[dict], out_png: str | Path, title: str | None = None) -> Pa
 
     palette = ("tab:blue", "tab:orange", "tab:green", "tab:red", "tab:purple", "tab:brown")
     colours = {key: palette[i % len(palette)] for i, key in enumerate(series_of(table))}
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
-    for ax, bits in zip(axes, ("payload_bits", "wire_bits"), strict=True):
-        for (learner, series), colour in colours.items():
-            for kind, marker in (("budget", "o"), ("lam", "s")):
-                sel = [
-                    r
-                    for r in _in(table, learner, series)
-                    if (r["budget"] is not None) == (kind == "budget")
-                ]
-                if not sel:
-                    continue
-                sel.sort(key=lambda r: r[bits][0])
-                x = np.array([r[bits] for r in sel])
-                y = np.array([r["success"] for r in sel])
-                label = f"{_label(learner, series)}: {'budgets' if kind == 'budget' else 'fixed λ'}"
-                ax.errorbar(
-                    x[:, 0],
-                    y[:, 0],
-                    xerr=np.abs(x[:, 1:].T - x[:, 0]),
-                    yerr=np.abs(y[:, 1:].T - y[:, 0]),
-                    fmt=marker + ("-" if kind == "budget" else ""),
-                    color=colour,
-                    mfc=colour if kind == "budget" else "white",
-                    capsize=3,
-                    label=label,
+    working = [r for r in table if r["success"][0] >= 0.5]
+    rows = 2 if working else 1
+    fig, axes = plt.subplots(rows, 2, figsize=(11, 4 * rows), squeeze=False)
+    for row in range(rows):
+        for ax, bits in zip(axes[row], ("payload_bits", "wire_bits"), strict=True):
+            for i, ((learner, series), colour) in enumerate(colours.items()):
+                # The top row tags only what the zoom leaves out.
+                tagged = (lambda r: r["success"][0] < 0.5) if row == 0 and rows == 2 else None
+                _plot_series(ax, _in(table, learner, series), bits, colour, i, tagged)
+                if row == 0:
+                    ax.plot([], [], "o-", color=colour, label=_label(learner, series))
+            ax.set_xscale("symlog", linthresh=1.0)
+            ax.set_xlabel(f"{bits.replace('_', ' ')} per step (team)")
+            ax.grid(alpha=0.3)
+            if row == 1:
+                ax.set_ylim(np.floor(min(r["success"][1] for r in working) * 20) / 20, 1.005)
+                ax.set_xlim(
+                    0.8 * min(r[bits][1] for r in working), 1.25 * max(r[bits][2] for r in working)
                 )
-                for r, xi, yi in zip(sel, x[:, 0], y[:, 0], strict=True):
-                    tag = f"{r['budget']:g}" if kind == "budget" else f"λ{r['lam']:g}"
-                    ax.annotate(
-                        tag,
-                        (xi, yi),
-                        textcoords="offset points",
-                        xytext=(4, -10),
-                        fontsize=7,
-                        color=colour,
-                    )
-        ax.set_xscale("symlog", linthresh=1.0)
-        ax.set_xlabel(f"{bits.replace('_', ' ')} per step (team)")
-        ax.grid(alpha=0.3)
-    axes[0].set_ylabel("success rate (final evaluation)")
-    axes[0].legend(fontsize=8, loc="lower right")
+        axes[row, 0].set_ylabel("success rate" + (" (zoom)" if row else " (final evaluation)"))
+    axes[0, 0].legend(
+        fontsize=8, loc="lower right", title="filled: budgets, open: fixed λ", title_fontsize=8
+    )
     fig.suptitle(title or "Bit-budget frontier: mean and 95% CI over seeds")
     fig.tight_layout()
     out_png = Path(out_png)
     fig.savefig(out_png, dpi=110)
     plt.close(fig)
     return out_png
+
+
+def _plot_series(ax, rows: list[dict], bits: str, colour: str, index: int, tagged=None) -> None:
+    """One series' budget points (filled, joined) and fixed-lambda points (open), tagged with
+    their budget or lambda (only those for which ``tagged(row)`` holds, when given); series
+    ``index`` places its tags apart from the others' so that series at the same bits do not
+    write over each other."""
+    for kind, marker in (("budget", "o"), ("lam", "s")):
+        sel = sorted(
+            (r for r in rows if (r["budget"] is not None) == (kind == "budget")),
+            key=lambda r: r[bits][0],
+        )
+        if not sel:
+            continue
+        x = np.array([r[bits] for r in sel])
+        y = np.array([r["success"] for r in sel])
+        ax.errorbar(
+            x[:, 0],
+            y[:, 0],
+            xerr=np.abs(x[:, 1:].T - x[:, 0]),
+            yerr=np.abs(y[:, 1:].T - y[:, 0]),
+            fmt=marker + ("-" if kind == "budget" else ""),
+            color=colour,
+            mfc=colour if kind == "budget" else "white",
+            capsize=3,
+        )
+        for r, xi, yi in zip(sel, x[:, 0], y[:, 0], strict=True):
+            if tagged is not None and not tagged(r):
+                continue
+            tag = f"{r['budget']:g}" if kind == "budget" else f"λ{r['lam']:g}"
+            ax.annotate(
+                tag,
+                (xi, yi),
+                textcoords="offset points",
+                xytext=(4 if index % 2 == 0 else -16, -10 - 6 * (index // 2)),
+                fontsize=7,
+                color=colour,
+                annotation_clip=True,
+            )
 
 
 def write_rows(table: list[dict], path: str | Path) -> Path:
