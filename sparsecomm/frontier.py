@@ -78,7 +78,7 @@ def reference(table: list[dict], learner: str, series: str | None = None) -> dic
     )
 
 
-def _label(learner: str, series: str | None) -> str:
+def label(learner: str, series: str | None) -> str:
     return learner if series is None else f"{learner}, {series}"
 
 
@@ -119,7 +119,7 @@ def budget_claims(table: list[dict]) -> list[dict]:
         out.append(
             {
                 "claim": number,
-                "label": f"claim {number} at budget-matched points ({_label(learner, series)})",
+                "label": f"claim {number} at budget-matched points ({label(learner, series)})",
                 "series": series,
                 "held": bool(learned and good),
                 "budgets_held": good,
@@ -186,7 +186,7 @@ def plot(table: list[dict], out_png: str | Path, title: str | None = None) -> Pa
                 tagged = (lambda r: r["success"][0] < 0.5) if row == 0 and rows == 2 else None
                 _plot_series(ax, _in(table, learner, series), bits, colour, i, tagged)
                 if row == 0:
-                    ax.plot([], [], "o-", color=colour, label=_label(learner, series))
+                    ax.plot([], [], "o-", color=colour, label=label(learner, series))
             ax.set_xscale("symlog", linthresh=1.0)
             ax.set_xlabel(f"{bits.replace('_', ' ')} per step (team)")
             ax.grid(alpha=0.3)
@@ -286,14 +286,14 @@ def main(argv: list[str] | None = None) -> None:
     table = write(args.out, sources)
     for r in table:
         print(
-            f"{_label(r['learner'], r.get('series')):9s} {_describe(r)}, "
+            f"{label(r['learner'], r.get('series')):9s} {_describe(r)}, "
             f"wire {r['wire_bits'][0]:.3g} ({r['seeds']} seeds)"
         )
     for c in budget_claims(table):
         print(f"{c['label']}: {'held' if c['held'] else 'not held'} {c['budgets_held']}")
     for t in targets(table):
         print(
-            f"target {_label(t['learner'], t['series'])} budget {t['budget']:g}: "
+            f"target {label(t['learner'], t['series'])} budget {t['budget']:g}: "
             f"{'met' if t['met'] else 'not met'}"
             f" (success {t['success_ratio']:.1%} of λ=0, bits {t['bits']:.3g})"
         )

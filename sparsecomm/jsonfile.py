@@ -38,3 +38,9 @@ def write_json(path: str | Path, data) -> Path:
     path = Path(path)
     path.write_text(json.dumps(data, indent=2, allow_nan=False))
     return path
+
+
+def read_json(path: str | Path) -> dict | None:
+    """The JSON document at ``path``, or None when there is no file."""
+    path = Path(path)
+    return json.loads(path.read_text()) if path.exists() else None

@@ -8,6 +8,7 @@ from sparsecomm import claims
 from sparsecomm.cli import main
 from sparsecomm.reproduce import BUDGETS, IL_LAMS, PARTS, RL_LAMS, Reproduce
 from sparsecomm.reproduce.provenance import source_digest
+from sparsecomm.reproduce.runs import expert_index
 
 TINY = [
     "--quick",
@@ -54,7 +55,7 @@ def test_quick_writes_every_artefact(quick_run):
         "budget_summary.json",
     ):
         assert (out / name).stat().st_size > 0, name
-    for part in ("rl", "imitation", "no_comm", "continuous", "fixed", "rcl"):
+    for part in ("rl", "imitation", "no_comm", "continuous", "fixed", "rcl", "il_budget_rl"):
         assert (out / part / "results.json").stat().st_size > 0, part
     assert (out / "oracle" / "results.json").exists() and (out / "oracle" / "centre.json").exists()
     timings = json.loads((out / "timings.json").read_text())
@@ -62,6 +63,11 @@ def test_quick_writes_every_artefact(quick_run):
     assert timings["rl"]["budget"]["env_steps_per_run"] == 2 * 2 * 12
     assert timings["rl"]["hardware"]["cpu_cores"] >= 1
     assert timings["rl"]["source_sha256"] == source_digest() and len(source_digest()) == 16
+    # the RL-team expert is the rl part's best lambda-0 team, with its own lambda-0 reference
+    assert timings["il_budget_rl"]["budget"]["expert"] == expert_index(out / "rl")
+    runs = json.loads((out / "il_budget_rl" / "results.json").read_text())["runs"]
+    assert sorted({r["budget"] for r in runs if r["budget"] is not None}) == sorted(BUDGETS)
+    assert sum(r["budget"] is None for r in runs) == 2  # lambda 0, both seeds
 
 
 @pytest.mark.slow
@@ -107,6 +113,31 @@ def test_table1_has_every_lambda(quick_run):
 def test_bad_config_names_the_field(field, value):
     with pytest.raises(ValueError, match=f"Reproduce.{field}"):
         Reproduce(**{field: value})
+
+
+def test_the_rl_team_expert_needs_lambda_zero():
+    with pytest.raises(ValueError, match="Reproduce.rl_lams must contain 0 for the il_budget_rl"):
+        Reproduce(parts=("rl", "il_budget_rl"), rl_lams=(0.01,))
+
+
+def test_the_rl_team_expert_is_the_best_lambda_zero_team(tmp_path):
+    def run(lam, success, length, budget=None):
+        return {"lam": lam, "budget": budget, "success_rate": success, "episode_length": length}
+
+    runs = [
+        run(0.01, 1.0, 10.0),  # best, but not lambda 0
+        run(0.0, 0.99, 12.0),
+        run(0.0, 1.0, 15.0, budget=16.0),  # best, but with a budget
+        run(0.0, 0.998, 14.0),
+        run(0.0, 0.998, 13.0),  # tie on success: the shorter episodes win
+    ]
+    (tmp_path / "results.json").write_text(json.dumps({"runs": runs}))
+    assert expert_index(tmp_path) == 4
+    (tmp_path / "results.json").write_text(json.dumps({"runs": runs[:1]}))
+    with pytest.raises(ValueError, match="no lambda = 0"):
+        expert_index(tmp_path)
+    with pytest.raises(ValueError, match="run 'rl' first"):
+        expert_index(tmp_path / "missing")
 
 
 # ---- the claim rules on synthetic numbers -------------------------------------------------
@@ -239,12 +270,18 @@ def test_extra_rcl_check_and_missing_parts():
 def test_budget_parts_write_the_frontier(quick_run):
     rows = json.loads((quick_run / "budget_summary.json").read_text())
     keys = {"learner", "budget", "lam", "seeds", "success", "payload_bits", "wire_bits"}
-    assert all(set(r) == keys | {"episode_length"} for r in rows)
-    for learner in ("rl", "imitation"):
-        budgets = {r["budget"] for r in rows if r["learner"] == learner}
-        assert budgets == {None, *BUDGETS}, (learner, budgets)
+    named = {"RL team"}  # the imitators of the RL team: a series of their own
+    assert all(set(r) == keys | {"episode_length"} | ({"series"} & set(r)) for r in rows)
+    for learner, series in (("rl", None), ("imitation", None), ("imitation", "RL team")):
+        budgets = {
+            r["budget"] for r in rows if (r["learner"], r.get("series")) == (learner, series)
+        }
+        assert budgets == {None, *BUDGETS}, (learner, series, budgets)
         assert all(r["seeds"] == 2 and len(r["success"]) == 3 for r in rows)
+    assert {r.get("series") for r in rows} - {None} == named
     text = (quick_run / "report.md").read_text()
     assert "## Bit budgets: the frontier" in text
     assert "claim 4 at budget-matched points (rl)" in text
     assert "claim 5 at budget-matched points (imitation)" in text
+    assert "claim 5 at budget-matched points (imitation, RL team)" in text
+    assert "| imitation, RL team | 16 | 0 | 2 |" in text

@@ -19,6 +19,9 @@ Parts (each written to its own folder under ``out``, each sweep one vmapped prog
 ``rl_budget``  RL with a bit budget in {64, 32, 16, 8, 4} payload bits per step instead of a
                fixed lambda (``sparsecomm.budget``; compared with the ``rl`` part's lambda 0)
 ``il_budget``  imitation of the oracle with the same budgets (compared with ``imitation``'s 0)
+``il_budget_rl`` imitation of an RL-trained team (the ``rl`` part's lambda-0 team with the
+               highest success, ties to the shortest episodes) with lambda 0 and the same
+               budgets; the expert's messages stay private, the learners see its actions
 ============== ===============================================================================
 """
 
@@ -48,6 +51,7 @@ PARTS = (
     "oracle",
     "rl_budget",
     "il_budget",
+    "il_budget_rl",
 )
 """Every part, in the order they run."""
 FULL = {"seeds": 10, "eval_episodes": 500, "chunk": 10}
@@ -102,8 +106,8 @@ class Reproduce:
     il_lams: tuple[float, ...] = IL_LAMS
     """Imitation penalty weights. Paper: 0.001, 0.0007, 0.0004, 0.0001 (and 0 here)."""
     budgets: tuple[float, ...] = BUDGETS
-    """Bit budgets of the ``rl_budget`` and ``il_budget`` parts (payload bits per step). ours,
-    issue 14."""
+    """Bit budgets of the ``rl_budget``, ``il_budget`` and ``il_budget_rl`` parts (payload bits
+    per step). ours, issue 14."""
     rcl_bit_cost: float = 0.001
     """RCL's reward per payload bit sent, negated (paper reward units). The paper gives none.
     ours: 0.001, the price per bit that the surrogate penalty sets at the smallest non-zero RL
@@ -145,10 +149,11 @@ class Reproduce:
             lams = getattr(self, name)
             if not lams or any(not np.isfinite(x) or x < 0 for x in lams):
                 raise ValueError(f"Reproduce.{name} must be non-empty, finite and >= 0, got {lams}")
-        if "fixed" in self.parts and 0.0 not in self.rl_lams:
-            raise ValueError(
-                f"Reproduce.rl_lams must contain 0 for the fixed part, got {self.rl_lams}"
-            )
+        for part in ("fixed", "il_budget_rl"):
+            if part in self.parts and 0.0 not in self.rl_lams:
+                raise ValueError(
+                    f"Reproduce.rl_lams must contain 0 for the {part} part, got {self.rl_lams}"
+                )
         if not self.budgets or any(not np.isfinite(b) or b < 0 for b in self.budgets):
             raise ValueError(
                 f"Reproduce.budgets must be non-empty, finite and >= 0, got {self.budgets}"

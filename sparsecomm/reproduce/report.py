@@ -10,17 +10,13 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from sparsecomm import claims, frontier
+from sparsecomm.jsonfile import read_json
 from sparsecomm.reproduce.plan import BASELINE_LABELS, PARTS
 from sparsecomm.reproduce.provenance import git_commit
 from sparsecomm.stats import plot_curves, plot_pareto
-
-
-def read_json(path: Path) -> dict | None:
-    return json.loads(path.read_text()) if path.exists() else None
 
 
 def collect(out: Path) -> dict:
@@ -52,16 +48,20 @@ def collect(out: Path) -> dict:
         auc["rcl"] = next(iter(claims.training_mean(out / "rcl" / "metrics.csv").values()))
     if auc:
         summary["training_success"] = auc
-    sources = {
-        learner: [doc for doc in (read_json(out / p / "results.json") for p in parts) if doc]
-        for learner, parts in (
-            ("rl", ("rl", "rl_budget")),
-            ("imitation", ("imitation", "il_budget")),
-        )
-    }
-    if (out / "rl_budget").exists() or (out / "il_budget").exists():
+    # (part, learner, series): each series is judged against its own lambda 0.
+    budget_parts = (
+        ("rl", "rl", None),
+        ("rl_budget", "rl", None),
+        ("imitation", "imitation", None),
+        ("il_budget", "imitation", None),
+        ("il_budget_rl", "imitation", "RL team"),
+    )
+    if any((out / part).exists() for part in ("rl_budget", "il_budget", "il_budget_rl")):
         summary["frontier"] = [
-            r for lr, docs in sources.items() for d in docs for r in frontier.rows(d, lr)
+            row
+            for part, learner, series in budget_parts
+            if (doc := read_json(out / part / "results.json"))
+            for row in frontier.rows(doc, learner, series)
         ]
     return summary
 
@@ -168,9 +168,8 @@ def _frontier_lines(table: list[dict]) -> list[str]:
         ]
         budget = "-" if r["budget"] is None else f"{r['budget']:g}"
         md.append(
-            f"| {r['learner']} | {budget} | {r['lam']:g} | {r['seeds']} | "
-            + " | ".join(cells)
-            + " |"
+            f"| {frontier.label(r['learner'], r.get('series'))} | {budget} | {r['lam']:g} | "
+            f"{r['seeds']} | " + " | ".join(cells) + " |"
         )
     md.append("")
     for c in frontier.budget_claims(table):
@@ -181,7 +180,8 @@ def _frontier_lines(table: list[dict]) -> list[str]:
     for t in frontier.targets(table):
         met = "met" if t["met"] else "not met"
         md.append(
-            f"- Target, {t['learner']} budget {t['budget']:g}: **{met}** (success "
+            f"- Target, {frontier.label(t['learner'], t['series'])} budget {t['budget']:g}: "
+            f"**{met}** (success "
             f"{t['success_ratio']:.1%} of λ=0's, payload bits {t['bits']:.3g})."
         )
     return md + [""]

@@ -13,7 +13,7 @@ from sparsecomm import checkpoint
 from sparsecomm.configs import ChannelConfig, RLConfig, from_dict
 from sparsecomm.envs.oracle import center_actions, oracle_actions, run_policy_episodes
 from sparsecomm.experiment import EVAL_SEED_OFFSET, Imitate, Train, evaluate_runs, train
-from sparsecomm.jsonfile import write_json
+from sparsecomm.jsonfile import read_json, write_json
 from sparsecomm.reproduce.plan import PARTS, Reproduce
 from sparsecomm.rl import make_train
 from sparsecomm.sharding import is_primary
@@ -66,6 +66,24 @@ def _budget(config, seeds: int, lams) -> dict:
         "episodes_per_update": config.num_envs,
         "env_steps_per_run": config.num_updates * config.num_envs * config.env.max_steps,
     }
+
+
+def expert_index(run: Path) -> int:
+    """The expert of ``il_budget_rl``: the index (in ``run``'s sweep) of the lambda-0 team
+    without a budget with the highest final success, ties broken by the shortest episodes."""
+    res = read_json(run / "results.json")
+    if res is None:
+        raise ValueError(
+            f"the il_budget_rl part needs the rl part's teams in {run}: run 'rl' first"
+        )
+    runs = [
+        (i, r)
+        for i, r in enumerate(res["runs"])
+        if float(r["lam"]) == 0.0 and r.get("budget") is None
+    ]
+    if not runs:
+        raise ValueError(f"the rl part in {run} has no lambda = 0 runs")
+    return min(runs, key=lambda p: (-p[1]["success_rate"], p[1]["episode_length"]))[0]
 
 
 def run_fixed(args: Reproduce, out: Path) -> dict:
@@ -142,6 +160,19 @@ def run_part(args: Reproduce, part: str) -> dict:
         cfg = _rl_config(args)
         train(_train_args(args, cfg, (0.0,), out / part, budgets=args.budgets))
         return _budget(cfg, seeds, (0.0,)) | {"bit_budgets": list(args.budgets)}
+    if part == "il_budget_rl":
+        index = expert_index(out / "rl")
+        cfg = dataclasses.replace(
+            args.il,
+            expert="checkpoint",
+            expert_checkpoint=str(out / "rl"),
+            expert_index=index,
+            num_updates=args.resolved("il_updates"),
+            num_envs=args.resolved("il_envs"),
+        )
+        budgets = (None, *args.budgets)  # its own lambda-0 reference, same expert, same program
+        train(_train_args(args, cfg, (0.0,), out / part, imitate=True, budgets=budgets))
+        return _budget(cfg, seeds, (0.0,)) | {"bit_budgets": list(args.budgets), "expert": index}
     if part in ("imitation", "il_budget"):
         cfg = dataclasses.replace(
             args.il,
