@@ -180,10 +180,10 @@ def plot(table: list[dict], out_png: str | Path, title: str | None = None) -> Pa
     rows = 2 if working else 1
     fig, axes = plt.subplots(rows, 2, figsize=(11, 4 * rows), squeeze=False)
     for row in range(rows):
+        # With a zoom below, the top row tags only what the zoom leaves out.
+        tagged = (lambda r: r["success"][0] < 0.5) if row == 0 and rows == 2 else None
         for ax, bits in zip(axes[row], ("payload_bits", "wire_bits"), strict=True):
             for i, ((learner, series), colour) in enumerate(colours.items()):
-                # The top row tags only what the zoom leaves out.
-                tagged = (lambda r: r["success"][0] < 0.5) if row == 0 and rows == 2 else None
                 _plot_series(ax, _in(table, learner, series), bits, colour, i, tagged)
                 if row == 0:
                     ax.plot([], [], "o-", color=colour, label=label(learner, series))

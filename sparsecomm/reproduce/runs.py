@@ -10,7 +10,7 @@ import jax
 import numpy as np
 
 from sparsecomm import checkpoint
-from sparsecomm.configs import ChannelConfig, RLConfig, from_dict
+from sparsecomm.configs import ChannelConfig, ILConfig, RLConfig, from_dict
 from sparsecomm.envs.oracle import center_actions, oracle_actions, run_policy_episodes
 from sparsecomm.experiment import EVAL_SEED_OFFSET, Imitate, Train, evaluate_runs, train
 from sparsecomm.jsonfile import read_json, write_json
@@ -36,6 +36,16 @@ def _rl_config(args: Reproduce, channel: ChannelConfig | None = None) -> RLConfi
         num_updates=args.resolved("rl_updates"),
         num_envs=args.resolved("rl_envs"),
         channel=channel or args.rl.channel,
+    )
+
+
+def _il_config(args: Reproduce, **expert) -> ILConfig:
+    """The imitation learner of the parts, with the oracle as expert unless ``expert`` says."""
+    return dataclasses.replace(
+        args.il,
+        num_updates=args.resolved("il_updates"),
+        num_envs=args.resolved("il_envs"),
+        **({"expert": "oracle"} | expert),
     )
 
 
@@ -162,24 +172,14 @@ def run_part(args: Reproduce, part: str) -> dict:
         return _budget(cfg, seeds, (0.0,)) | {"bit_budgets": list(args.budgets)}
     if part == "il_budget_rl":
         index = expert_index(out / "rl")
-        cfg = dataclasses.replace(
-            args.il,
-            expert="checkpoint",
-            expert_checkpoint=str(out / "rl"),
-            expert_index=index,
-            num_updates=args.resolved("il_updates"),
-            num_envs=args.resolved("il_envs"),
+        cfg = _il_config(
+            args, expert="checkpoint", expert_checkpoint=str(out / "rl"), expert_index=index
         )
         budgets = (None, *args.budgets)  # its own lambda-0 reference, same expert, same program
         train(_train_args(args, cfg, (0.0,), out / part, imitate=True, budgets=budgets))
         return _budget(cfg, seeds, (0.0,)) | {"bit_budgets": list(args.budgets), "expert": index}
     if part in ("imitation", "il_budget"):
-        cfg = dataclasses.replace(
-            args.il,
-            expert="oracle",
-            num_updates=args.resolved("il_updates"),
-            num_envs=args.resolved("il_envs"),
-        )
+        cfg = _il_config(args)
         if part == "il_budget":
             train(_train_args(args, cfg, (0.0,), out / part, imitate=True, budgets=args.budgets))
             return _budget(cfg, seeds, (0.0,)) | {"bit_budgets": list(args.budgets)}
