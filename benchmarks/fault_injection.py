@@ -34,7 +34,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from sparsecomm.experiment import load_run
+from sparsecomm.runfolder import load_run
 
 UPDATES = 16
 ARGS = [

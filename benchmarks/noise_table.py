@@ -22,8 +22,9 @@ import matplotlib.pyplot as plt  # noqa: E402
 import tyro  # noqa: E402
 
 from sparsecomm.channel import NoiseConfig  # noqa: E402
-from sparsecomm.experiment import evaluate_runs, learner_for, load_run  # noqa: E402
+from sparsecomm.experiment import evaluate_runs  # noqa: E402
 from sparsecomm.reproduce.provenance import hardware  # noqa: E402
+from sparsecomm.runfolder import learner_for, load_run  # noqa: E402
 
 SETTINGS = {
     "clean": (NoiseConfig(), "none"),

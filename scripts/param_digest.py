@@ -3,7 +3,9 @@
 A refactor that should not change behaviour must leave these digests unchanged on the same
 machine (CPU, same jax): ``python scripts/param_digest.py`` before and after, and compare.
 Covers fixed-lambda and budgeted RL, shared and separate actor parameters, the reinforced
-channel baseline, and DAgger imitation of the oracle.
+channel baseline, DAgger imitation of the oracle, and the channel's paths: continuous, off,
+lossy and late links (fixed code, null and last), and links routed by position with
+aggregated inboxes.
 
 ``--record tests/data/rl3.json`` writes the first case's record for ``tests/test_digest.py``:
 its digest, every parameter leaf's sum and norm, and the machine it ran on.
@@ -21,6 +23,7 @@ import jax
 import numpy as np
 
 from sparsecomm.budget import BudgetConfig
+from sparsecomm.channel import NoiseConfig
 from sparsecomm.configs import AgentConfig, ChannelConfig, ILConfig, RLConfig
 from sparsecomm.envs.navigation import NavConfig
 from sparsecomm.imitation import make_imitate
@@ -86,6 +89,55 @@ def cases() -> dict:
             float("nan"),
         ),
         "il dagger": (make_imitate, ILConfig(env=env, num_envs=8, seed=3), 0.001, float("nan")),
+        "rl continuous channel": (
+            make_train,
+            dataclasses.replace(rl, channel=ChannelConfig(mode="continuous")),
+            0.0,
+            float("nan"),
+        ),
+        "rl channel off": (
+            make_train,
+            dataclasses.replace(rl, channel=ChannelConfig(mode="off")),
+            0.0,
+            float("nan"),
+        ),
+        "rl erasure 0.3, last, fixed code": (
+            make_train,
+            dataclasses.replace(
+                rl, channel=ChannelConfig(code="fixed", noise=NoiseConfig(erasure=0.3))
+            ),
+            0.01,
+            float("nan"),
+        ),
+        "rl delay 2, null": (
+            make_train,
+            dataclasses.replace(
+                rl, channel=ChannelConfig(noise=NoiseConfig(delay=2, flip=0.01, on_drop="null"))
+            ),
+            0.01,
+            float("nan"),
+        ),
+        "rl 4 agents, 2 nearest, attention": (
+            make_train,
+            dataclasses.replace(
+                rl,
+                env=NavConfig(num_agents=4, max_steps=24),
+                agent=AgentConfig(neighbours=2, aggregate="attention"),
+            ),
+            0.01,
+            float("nan"),
+        ),
+        "rl 4 agents, radius, mean, off": (
+            make_train,
+            dataclasses.replace(
+                rl,
+                env=NavConfig(num_agents=4, max_steps=24),
+                agent=AgentConfig(radius=0.5, aggregate="mean"),
+                channel=ChannelConfig(mode="off"),
+            ),
+            0.0,
+            float("nan"),
+        ),
     }
 
 

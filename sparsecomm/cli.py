@@ -2,8 +2,8 @@
 deploy`` (tyro).
 
 Every flag is a documented config field: ``sparsecomm train --help`` lists them all. The work is
-done in :mod:`sparsecomm.experiment`, :mod:`sparsecomm.codestats` and :mod:`sparsecomm.reproduce`;
-this module only parses.
+done in :mod:`sparsecomm.experiment`, :mod:`sparsecomm.codestats`, :mod:`sparsecomm.reproduce` and
+:mod:`sparsecomm.deploy`; this module only parses.
 """
 
 from __future__ import annotations
@@ -13,15 +13,15 @@ from pathlib import Path
 
 from sparsecomm.codestats import FitCode, fit_code
 from sparsecomm.configs import PRESETS
+from sparsecomm.deploy.args import Deploy
+from sparsecomm.deploy.launcher import deploy
 from sparsecomm.errors import RunError
 from sparsecomm.experiment import (
-    Deploy,
     Eval,
     Export,
     Imitate,
     Render,
     Train,
-    deploy,
     evaluate,
     export_team,
     render,

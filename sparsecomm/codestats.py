@@ -18,8 +18,8 @@ import numpy as np
 
 from sparsecomm import channel
 from sparsecomm.channel.fitted import FittedCode, fit, previous
-from sparsecomm.experiment import _at_least, _check_index, load_run
 from sparsecomm.rollout import rollout
+from sparsecomm.runfolder import at_least, check_index, load_run
 
 FIT_SEED_OFFSET = 2_000_003
 """Fitting episodes use ``config.seed + FIT_SEED_OFFSET + args.seed``: disjoint from training
@@ -48,7 +48,7 @@ class FitCode:
     """JSON file to write (default: ``<run>/code.json``)."""
 
     def __post_init__(self):
-        _at_least(self, index=0, episodes=1, group=1)
+        at_least(self, index=0, episodes=1, group=1)
 
 
 def link_symbols(trainer, channel_cfg, params, key, episodes: int, batch: int = 512):
@@ -173,7 +173,7 @@ def measure(code: FittedCode, links: np.ndarray, valid: np.ndarray, levels: int)
 def fit_code(args: FitCode) -> Path:
     """Fit a code to run ``args.index`` of ``args.run`` and write it (``sparsecomm fit-code``)."""
     config, trainer, runs, actor = load_run(args.run)
-    _check_index(args, runs)
+    check_index(args, runs)
     params = jax.tree.map(lambda x: x[args.index], actor)
     key = jax.random.key(config.seed + FIT_SEED_OFFSET + args.seed)
     links, valid = link_symbols(trainer, config.channel, params, key, args.episodes)

@@ -1,9 +1,11 @@
-"""Typed configurations. Every field documents where its default comes from.
+"""Typed configurations. Every field documents its rule, its unit and where its default comes from.
 
 ``paper``: stated in the paper (``docs/paper.md``); ``SPEC``: pinned by ``docs/spec.md``, often from
-its calibration run; ``ours``: chosen here, by measurement where a number is given.
-The channel's own configuration, ``ChannelConfig``, lives with the channel
-(``sparsecomm.channel.links``); the learners' configurations here hold one.
+its calibration run; ``ours``: chosen here, by the measurements of the doc named (how each
+default was chosen is told there, not here). The two learners' configurations, :class:`RLConfig`
+and :class:`ILConfig`, share :class:`LearnerConfig`'s fields. The channel's own configuration,
+``ChannelConfig``, lives with the channel (``sparsecomm.channel.config``); the learners'
+configurations here hold one.
 """
 
 from __future__ import annotations
@@ -35,21 +37,19 @@ class AgentConfig:
     """Networks: a recurrent actor per agent and a centralised critic (SPEC section 5)."""
 
     hidden: int = 64
-    """Width of the actor's two dense layers before the GRU. SPEC calibration: 64."""
+    """Width of the actor's two dense layers before the GRU (units, >= 1). SPEC calibration: 64."""
     gru: int = 64
-    """GRU state size of the actor. SPEC calibration: 64."""
+    """GRU state size of the actor (>= 1). SPEC calibration: 64."""
     critic_hidden: int = 128
-    """Width of the critic's two hidden layers. SPEC calibration: 128."""
+    """Width of the critic's two hidden layers (units, >= 1). SPEC calibration: 128."""
     share_params: bool = True
     """One set of actor parameters for all agents, with a one-hot agent id appended to the input.
-    ours: True. Paper/SPEC: separate parameters per agent (``--config.agent.no-share-params``,
-    the paper-faithful option). With separate parameters 3 of 10 untuned seeds stall at 0.16-0.21
-    success (one "lazy agent" never learns to read its messages, docs/notes.md); with shared ones
-    10 of 10 reach 0.99 (issue 14, H100, 65.5M env steps per run)."""
+    ours: True (docs/rl.md, "How the defaults were chosen"). Paper/SPEC: separate parameters per
+    agent (``--config.agent.no-share-params``, the paper-faithful option)."""
     message_bias_init: float = 0.0
-    """Initial bias of the message head's pre-sigmoid output: 0 starts every element at z = 0.5
-    (flax's default, as the paper); -4 starts near silence (z = 0.018, ~0.3 payload bits per
-    link). ours: 0 (docs/budget.md measures -4)."""
+    """Initial bias of the message head's pre-sigmoid output (finite): 0 starts every element at
+    z = 0.5 (flax's default, as the paper); -4 starts near silence (z = 0.018, ~0.3 payload bits
+    per link). ours: 0, the paper's (docs/budget.md, "Tried, and not kept as defaults")."""
     message_gate: str = "sigmoid"
     """How the message head's output becomes the signal z in [0, 1]: ``sigmoid`` (paper) or
     ``hard``, a hard sigmoid whose silence is exact (z = 0, 0 bits) and reversible (a silent
@@ -82,67 +82,87 @@ class AgentConfig:
 
 
 @dataclasses.dataclass(frozen=True)
-class RLConfig:
-    """Actor-critic training through the channel (paper eq. 5, SPEC section 5)."""
+class LearnerConfig:
+    """What every learner's configuration holds (``sparsecomm.learner``): the task, the channel,
+    the networks, the bit budget and the loop's sizes, each field checked once here.
+    :class:`RLConfig` and :class:`ILConfig` add their own fields, and their own defaults where
+    the learners differ."""
 
     env: NavConfig = NavConfig()
     """The navigation task."""
     channel: ChannelConfig = ChannelConfig()
     """The channel."""
     agent: AgentConfig = AgentConfig()
-    """The networks."""
+    """The networks (imitation leaves the critic unused)."""
     budget: BudgetConfig = BudgetConfig()
     """The bit budget (payload bits per step) and the controller that sets the penalty weight to
-    meet it (``sparsecomm.budget``); ``budget.bits = None`` keeps the fixed lambda."""
+    meet it (``sparsecomm.budget``); ``budget.bits = None`` keeps the fixed lambda. ours: the
+    controller's defaults (docs/budget.md)."""
     num_envs: int = 256
-    """Episodes of ``env.max_steps`` steps collected per update. ours, by the tuning in
-    docs/tuning.md (SPEC calibration: 64)."""
+    """Episodes of ``env.max_steps`` steps collected per update (>= 1). ours: 256 for RL
+    (docs/tuning.md; SPEC calibration: 64); ``ILConfig`` sets its own."""
     num_updates: int = 1000
-    """Number of gradient updates. ours."""
+    """Number of gradient updates (>= 0). ours; ``ILConfig`` sets its own."""
     lr: float = 1e-3
-    """Adam learning rate. ours, docs/tuning.md (SPEC calibration: 3e-4)."""
+    """Adam learning rate (> 0). ours: 1e-3 (docs/tuning.md; SPEC calibration: 3e-4)."""
     max_grad_norm: float = 1.0
-    """Global-norm gradient clipping, applied to the actors and the critic separately. SPEC
-    calibration: 1.0 (one norm for both)."""
-    gamma: float = 0.95
-    """Discount. ours, docs/tuning.md (SPEC calibration: 0.99). With 0.99 an agent hovering in
-    its goal radius (+250 a step) is worth more than the one-off success bonus (1200), and
-    learning repeatedly found and lost success."""
-    gae_lambda: float = 1.0
-    """GAE lambda; 1.0 gives the paper's Monte-Carlo returns minus the critic (eq. 5)."""
-    ent_coef: float = 0.01
-    """Entropy bonus weight. ours, docs/tuning.md (SPEC calibration: none)."""
-    normalize_advantages: bool = True
-    """Standardise each agent's advantages over the valid steps of the batch (zero mean, unit
-    standard deviation) before the policy-gradient term. ours, docs/tuning.md round 5 (not in the
-    paper's eq. 5): with it all 4 seeds solve the task (success 0.99 at 104M env steps) where
-    without it the mean plateaued near 0.5."""
-    vf_coef: float = 0.5
-    """Weight of the critic's squared-error loss. ours."""
-    penalty_delay: int = 0
-    """Updates at the start of training without the bit penalty; then its weight grows linearly
-    to lambda over ``penalty_ramp`` updates. ours: 0, the paper's objective from the first update
-    (the paper mentions no schedule). docs/reproduce.md: with lambda >= 0.03 the penalty silences
-    the channel before the team has learned to use it."""
-    penalty_ramp: int = 0
-    """Updates over which the penalty weight grows from 0 to lambda after ``penalty_delay``
-    (0: at once). ours: 0."""
-    reward_scale: float = 0.01
-    """Rewards are multiplied by this for learning (logs stay in the paper's units). SPEC
-    calibration: 1/100."""
+    """Global-norm gradient clipping (> 0); RL clips the actors and the critic separately
+    (``rl.clip_each_part``), imitation the actors. SPEC calibration: 1.0 (one norm for both)."""
     remat: bool = False
     """Rematerialise each step of the episode in the backward pass (``jax.checkpoint``): less
     memory, more compute. ours."""
     seed: int = 0
     """Base PRNG seed; seed s of a sweep uses ``seed + s``."""
 
-    def __post_init__(self):
-        _check_finite(self)
-        checks = {
+    def _checks(self) -> dict[str, tuple[bool, str]]:
+        """Each field's rule, ``name -> (holds, the rule in words)``; a learner adds its own."""
+        return {
             "num_envs": (self.num_envs >= 1, ">= 1"),
             "num_updates": (self.num_updates >= 0, ">= 0"),
             "lr": (self.lr > 0, "> 0"),
             "max_grad_norm": (self.max_grad_norm > 0, "> 0"),
+        }
+
+    def __post_init__(self):
+        _check_finite(self)
+        for name, (ok, allowed) in self._checks().items():
+            if not ok:
+                raise _bad(type(self).__name__, name, getattr(self, name), allowed)
+        check_fits(self.agent, self.env.num_agents)
+        check_budget_fits(self)
+
+
+@dataclasses.dataclass(frozen=True)
+class RLConfig(LearnerConfig):
+    """Actor-critic training through the channel (paper eq. 5, SPEC section 5)."""
+
+    gamma: float = 0.95
+    """Discount, in [0, 1]. ours: 0.95 (docs/tuning.md, rounds 1-4; SPEC calibration: 0.99)."""
+    gae_lambda: float = 1.0
+    """GAE lambda, in [0, 1]; 1.0 gives the paper's Monte-Carlo returns minus the critic
+    (eq. 5). paper."""
+    ent_coef: float = 0.01
+    """Entropy bonus weight (>= 0). ours: 0.01 (docs/tuning.md; SPEC calibration: none)."""
+    normalize_advantages: bool = True
+    """Standardise each agent's advantages over the valid steps of the batch (zero mean, unit
+    standard deviation) before the policy-gradient term. ours: True, not in the paper's eq. 5
+    (docs/tuning.md, round 5)."""
+    vf_coef: float = 0.5
+    """Weight of the critic's squared-error loss (>= 0). ours."""
+    penalty_delay: int = 0
+    """Updates at the start of training without the bit penalty (>= 0); then its weight grows
+    linearly to lambda over ``penalty_ramp`` updates. ours: 0, the paper's objective from the
+    first update (the paper mentions no schedule; docs/reproduce.md measures a delay)."""
+    penalty_ramp: int = 0
+    """Updates over which the penalty weight grows from 0 to lambda after ``penalty_delay``
+    (>= 0; 0: at once). ours: 0."""
+    reward_scale: float = 0.01
+    """Rewards are multiplied by this (> 0) for learning; logs stay in the paper's units. SPEC
+    calibration: 1/100."""
+
+    def _checks(self) -> dict[str, tuple[bool, str]]:
+        return {
+            **super()._checks(),
             "gamma": (0 <= self.gamma <= 1, "in [0, 1]"),
             "gae_lambda": (0 <= self.gae_lambda <= 1, "in [0, 1]"),
             "ent_coef": (self.ent_coef >= 0, ">= 0"),
@@ -151,11 +171,6 @@ class RLConfig:
             "penalty_ramp": (self.penalty_ramp >= 0, ">= 0"),
             "reward_scale": (self.reward_scale > 0, "> 0"),
         }
-        for name, (ok, allowed) in checks.items():
-            if not ok:
-                raise _bad("RLConfig", name, getattr(self, name), allowed)
-        check_fits(self.agent, self.env.num_agents)
-        check_budget_fits(self)
 
 
 def to_dict(config) -> dict:
@@ -187,21 +202,18 @@ EXPERTS = ("oracle", "checkpoint")
 
 
 @dataclasses.dataclass(frozen=True)
-class ILConfig:
+class ILConfig(LearnerConfig):
     """Imitation of an expert's actions through the channel (paper eq. 4, SPEC section 5)."""
 
-    env: NavConfig = NavConfig()
-    """The navigation task."""
-    channel: ChannelConfig = ChannelConfig()
-    """The channel."""
-    agent: AgentConfig = AgentConfig()
-    """The learners' networks (the critic is unused)."""
     budget: BudgetConfig = BudgetConfig(weight_init=1e-3, relief_floor=0.1)
     """The bit budget and its controller, as in RL (``sparsecomm.budget``). ours: the weight
     starts at 1e-3 when the controller engages (imitation's lambda has other units: its channel
     collapses between lambda 0.003 and 0.01, docs/imitation.md), and while success is down it
-    falls no lower than 0.1 of the last price that held it (controller v6: unbounded, the
-    price fell to 1e-5 in each dip and needed ~280 updates to climb back, docs/budget.md)."""
+    falls no lower than 0.1 of the last price that held it (docs/budget.md, controller v6)."""
+    num_envs: int = 64
+    """Episodes of ``env.max_steps`` steps collected per update (>= 1). ours."""
+    num_updates: int = 500
+    """Number of gradient updates (>= 0). ours."""
     expert: str = "oracle"
     """``oracle``: the centralised scripted controller that sees every goal and sends nothing
     (the paper's "communication-free expert"). ``checkpoint``: a team trained by
@@ -211,65 +223,44 @@ class ILConfig:
     """Folder of a ``sparsecomm train`` run, for ``expert = checkpoint``."""
     expert_index: int = 0
     """Which run of that sweep is the expert (lambda-major, then seed)."""
-    num_envs: int = 64
-    """Episodes per update. ours."""
-    num_updates: int = 500
-    """Number of gradient updates. ours."""
-    lr: float = 1e-3
-    """Adam learning rate. ours."""
-    max_grad_norm: float = 1.0
-    """Global-norm gradient clipping. ours (as RL)."""
     beta_start: float = 1.0
-    """Probability that the expert's action is executed at update 0 (1: the expert drives,
-    behaviour cloning). ours."""
+    """Probability, in [0, 1], that the expert's action is executed at update 0 (1: the expert
+    drives, behaviour cloning). ours."""
     beta_end: float = 0.0
-    """... after ``beta_decay_updates`` updates (0: the learners drive with expert labels,
-    DAgger). ours, chosen by measurement (docs/imitation.md)."""
+    """... after ``beta_decay_updates`` updates, in [0, 1] (0: the learners drive with expert
+    labels, DAgger). ours, chosen by measurement (docs/imitation.md)."""
     beta_decay_updates: int = 100
-    """Updates over which beta falls linearly from beta_start to beta_end. ours: DAgger with this
-    schedule reached 0.91 success after 300 updates of 32 episodes where behaviour cloning
-    (beta 1 throughout) reached 0.40 (docs/imitation.md)."""
-    remat: bool = False
-    """Rematerialise each step in the backward pass (``jax.checkpoint``). ours."""
-    seed: int = 0
-    """Base PRNG seed; seed s of a sweep uses ``seed + s``."""
+    """Updates (>= 0) over which beta falls linearly from beta_start to beta_end. ours: 100
+    (docs/imitation.md, "Behaviour cloning vs DAgger")."""
 
-    def __post_init__(self):
-        _check_finite(self)
-        checks = {
+    def _checks(self) -> dict[str, tuple[bool, str]]:
+        return {
+            **super()._checks(),
             "expert": (self.expert in EXPERTS, f"one of {EXPERTS}"),
             "expert_checkpoint": (
                 self.expert != "checkpoint" or bool(self.expert_checkpoint),
                 "a run folder when expert = checkpoint",
             ),
-            "num_envs": (self.num_envs >= 1, ">= 1"),
-            "num_updates": (self.num_updates >= 0, ">= 0"),
-            "lr": (self.lr > 0, "> 0"),
-            "max_grad_norm": (self.max_grad_norm > 0, "> 0"),
             "beta_start": (0 <= self.beta_start <= 1, "in [0, 1]"),
             "beta_end": (0 <= self.beta_end <= 1, "in [0, 1]"),
             "beta_decay_updates": (self.beta_decay_updates >= 0, ">= 0"),
         }
-        for name, (ok, allowed) in checks.items():
-            if not ok:
-                raise _bad("ILConfig", name, getattr(self, name), allowed)
-        check_fits(self.agent, self.env.num_agents)
-        check_budget_fits(self)
 
 
-def check_budget_fits(config, budgets=None, name: str = "budget.bits") -> None:
-    """Refuse budgets the run cannot use: a budget needs the ``discrete`` channel (the only one
-    with a differentiable bit penalty) and at most the most bits the team's code can send per
-    step. ``budgets`` defaults to ``config.budget.bits``; ``None`` entries mean no budget."""
+def check_budget_fits(config: LearnerConfig, budgets=None, name: str = "budget.bits") -> None:
+    """Refuse budgets the run cannot use: a budget needs a channel with a differentiable bit
+    penalty (``ChannelConfig.has_penalty``: the ``discrete`` mode) and at most the most bits the
+    team's code can send per step. ``budgets`` defaults to ``config.budget.bits``; ``None``
+    entries mean no budget."""
     if budgets is None:
         budgets = (config.budget.bits,)
     budgets = [b for b in budgets if b is not None]
     if not budgets:
         return
     owner = type(config).__name__
-    if config.channel.mode != "discrete":
+    if not config.channel.has_penalty:
         raise ValueError(
-            f"{owner}.{name} needs channel.mode 'discrete' (the only mode with a bit penalty), "
+            f"{owner}.{name} needs channel.mode 'discrete' (a channel with a bit penalty), "
             f"got channel.mode {config.channel.mode!r}"
         )
     k = config.env.num_agents

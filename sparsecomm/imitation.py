@@ -25,7 +25,7 @@ from sparsecomm.agents import Team
 from sparsecomm.configs import ILConfig
 from sparsecomm.envs.navigation import NavigationEnv
 from sparsecomm.envs.oracle import oracle_actions
-from sparsecomm.learner import Learner, make_learner, make_team, masked_mean
+from sparsecomm.learner import Learner, LossAux, make_learner, make_team, masked_mean
 from sparsecomm.rollout import Expert, episode_metrics, rollout
 
 
@@ -71,13 +71,13 @@ def team_expert(team: Team, channel_cfg, actor_params) -> Expert:
 def make_imitate(config: ILConfig, expert: Expert | None = None) -> Learner:
     """The imitation learner of ``config`` imitating ``expert`` (default: the oracle, which
     ``config.expert = "oracle"`` names; a team expert is loaded by
-    ``sparsecomm.experiment.load_expert``)."""
+    ``sparsecomm.runfolder.load_expert``)."""
     env, team = make_team(config)
     if expert is None:
         if config.expert != "oracle":
             raise ValueError(
                 f"ILConfig.expert {config.expert!r} needs the expert itself: "
-                "make_imitate(config, sparsecomm.experiment.load_expert(config))"
+                "make_imitate(config, sparsecomm.runfolder.load_expert(config))"
             )
         expert = oracle_expert(env)
     tx = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.lr))
@@ -114,7 +114,7 @@ def make_imitate(config: ILConfig, expert: Expert | None = None) -> Learner:
             beta=beta,
             expert_agreement=mean(agree.astype(jnp.float32)),
         )
-        return loss, (metrics, (traj.hidden, traj.valid))
+        return loss, LossAux(metrics, traj.hidden, traj.valid)
 
     def own_success(metrics, update):
         """The team's own success counts only once beta has reached beta_end (the learners drive

@@ -1,9 +1,9 @@
 """The learner scaffold that RL and imitation share: state, init, update, chunked scan, evaluate.
 
 A learner is its loss. ``make_learner(config, loss_fn, tx)`` wraps
-``loss_fn(params, key, price, update) -> (loss, (metrics, (hidden, valid)))`` (``price``: the
-bit-penalty weight of this update, in lambda's units; ``update``: the 0-based update counter) in
-pure functions, PureJaxRL-style:
+``loss_fn(params, key, price, update) -> (loss, LossAux)`` (``price``: the bit-penalty weight of
+this update, in lambda's units; ``update``: the 0-based update counter) in pure functions,
+PureJaxRL-style:
 
 - ``init(key, lam, budget=nan) -> LearnerState``: a run's first state; ``budget`` (payload bits
   per step; NaN: none) hands the price to the controller of :mod:`sparsecomm.budget`;
@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -28,6 +29,7 @@ from flax import struct
 
 from sparsecomm import budget as bit_budget
 from sparsecomm.agents import Team
+from sparsecomm.configs import LearnerConfig
 from sparsecomm.envs.navigation import NavigationEnv
 from sparsecomm.rollout import Expert, episode_metrics, rollout
 from sparsecomm.scaling import check_fits
@@ -43,11 +45,23 @@ class LearnerState(struct.PyTreeNode):
     budget: bit_budget.BudgetState  # this run's lambda, bit budget and penalty-weight controller
 
 
+class LossAux(NamedTuple):
+    """What a learner's loss returns beside the loss itself: ``loss_fn(...) -> (loss, LossAux)``."""
+
+    metrics: dict
+    """The update's scalars: ``rollout.episode_metrics`` of its episodes and the loss's terms."""
+    hidden: jax.Array | None
+    """(T, B, K, H) GRU states the messages came from (``rollout(keep_hidden=True)``, for the
+    decoupled penalty step), else None."""
+    valid: jax.Array
+    """(T, B) bool: the step belongs to the episode (``Trajectory.valid``)."""
+
+
 @dataclasses.dataclass(frozen=True)
 class Learner:
     """The pure functions of one configuration (see the module docstring)."""
 
-    config: object
+    config: LearnerConfig
     env: NavigationEnv
     team: Team
     tx: optax.GradientTransformation
@@ -57,11 +71,11 @@ class Learner:
     train: Callable
     evaluate: Callable
     loss: Callable
-    """``loss(params, key, price, update) -> (loss, aux)``: the learner's own loss."""
+    """``loss(params, key, price, update) -> (loss, LossAux)``: the learner's own loss."""
     expert: Expert | None = None
 
 
-def make_team(config, env=None) -> tuple[NavigationEnv, Team]:
+def make_team(config: LearnerConfig, env=None) -> tuple[NavigationEnv, Team]:
     """The task and the team of a learner's config (``env``, ``agent``, ``channel``).
 
     ``env``: another task to use instead of ``NavigationEnv(config.env)``, with its interface
@@ -84,7 +98,7 @@ def make_team(config, env=None) -> tuple[NavigationEnv, Team]:
 
 
 def make_learner(
-    config,
+    config: LearnerConfig,
     loss_fn: Callable,
     tx: optax.GradientTransformation,
     *,
@@ -111,17 +125,16 @@ def make_learner(
         key, k_roll = jax.random.split(state.key)
         price = bit_budget.weight(state.budget)
         in_loss = 0.0 if config.budget.decoupled else price  # else a step of its own, below
-        grads, (metrics, (hidden, valid)) = jax.grad(loss_fn, has_aux=True)(
-            state.params, k_roll, in_loss, state.update
-        )
+        grads, aux = jax.grad(loss_fn, has_aux=True)(state.params, k_roll, in_loss, state.update)
+        metrics = aux.metrics
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         params = bit_budget.decoupled_update(
             config.budget,
             params,
             team.message_penalty,
-            hidden,
-            valid,
+            aux.hidden,
+            aux.valid,
             price,
             config.channel.penalty,
         )

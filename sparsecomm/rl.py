@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import optax
 
 from sparsecomm.configs import RLConfig
-from sparsecomm.learner import Learner, make_learner, make_team, masked_mean
+from sparsecomm.learner import Learner, LossAux, make_learner, make_team, masked_mean
 from sparsecomm.rollout import Trajectory, episode_metrics, rollout
 
 
@@ -111,7 +111,7 @@ def make_train(config: RLConfig, env=None) -> Learner:
         valid = traj.valid.astype(jnp.float32)
         values = jax.lax.map(lambda s: team.value(params["critic"], s), traj.states)
         rewards = traj.rewards * config.reward_scale * valid[..., None]
-        reinforced = config.channel.mode == "reinforced"
+        reinforced = config.channel.samples_symbols
         if reinforced:  # RCL: each agent pays bit_cost per payload bit it sends
             sent = traj.link_bits.sum(-1) * valid[..., None]  # (T, B, K) bits by sender
             rewards = rewards - config.channel.bit_cost * config.reward_scale * sent
@@ -152,6 +152,6 @@ def make_train(config: RLConfig, env=None) -> Learner:
             entropy=mean(entropy.mean(-1)),
             penalty_weight=penalty_weight,
         )
-        return loss, (metrics, (traj.hidden, traj.valid))
+        return loss, LossAux(metrics, traj.hidden, traj.valid)
 
     return make_learner(config, loss_fn, tx, env=env, team=team)

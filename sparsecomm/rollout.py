@@ -1,8 +1,10 @@
 """The one rollout: environment, actors and channel in a single ``lax.scan``.
 
 It serves reinforcement learning (the learners act), imitation (an expert acts, or the learners
-act and an expert labels: DAgger) and evaluation. The channel itself (routing, dither, every
-mode's transmit) is :mod:`sparsecomm.channel.links`; this module is the scan over them. Each
+act and an expert labels: DAgger) and evaluation. The channel itself (routing, dither, the
+sender side ``transmit`` and the receiver side ``receive`` of every mode) is
+:mod:`sparsecomm.channel.links`, its noise :mod:`sparsecomm.channel.lossy`; this module is the
+scan over them. Each
 batch element is one whole episode of ``env.max_steps`` steps; steps after the episode ended
 are computed but masked (``valid``).
 
@@ -14,16 +16,16 @@ receiver's log-probabilities at t+1 depend on the senders' parameters through ``
 all earlier steps through the GRU states (backpropagation through the episode).
 
 Many agents (``AgentConfig.neighbours`` / ``radius``, :mod:`sparsecomm.scaling`): each step's
-links follow the positions of that step (``scaling.routing_mask``); a link that does not exist
-sends z = 0 (the null symbol: 0 bits, 0 penalty, no gradient) and delivers 0, and the receivers
-get, beside their messages, which links arrived (``heard``), for a ``mean`` or ``attention``
-inbox.
+links follow the positions of that step (``scaling.routing_mask``, a traced routing mask given
+to ``channel.live_links``); a link that does not exist sends z = 0 (the null symbol: 0 bits, 0
+penalty, no gradient) and delivers 0, and the receivers get, beside their messages, which links
+they heard (``Carry.heard``), for a ``mean`` or ``attention`` inbox.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -73,6 +75,19 @@ class Trajectory:
     links: Any = None  # (T, B) links that existed (only with routing, ``sparsecomm.scaling``)
 
 
+class Carry(NamedTuple):
+    """What one step of the scan hands the next, leading axis (B,) episodes."""
+
+    env_state: Any  # batched NavState
+    obs: jax.Array  # (B, K, obs_dim) observations
+    msgs: jax.Array  # (B, K, (K-1) C) messages received, by recipient (``channel.deliver``)
+    gru: jax.Array  # (B, K, H) the actors' GRU states
+    expert: Any  # the expert's carry (None without an expert)
+    prev_symbols: jax.Array  # (B, K, K-1, C) int32 each link's symbols at the previous step
+    links: Any  # channel.lossy.LinkState of the noisy links (None on a clean channel)
+    heard: Any  # (B, K, K-1) bool which links each recipient heard (None: all, the full team)
+
+
 def rollout(
     team: Team,
     env: NavigationEnv,
@@ -113,13 +128,9 @@ def rollout(
     chan_keys, gumbel = agent_draws(key, num_envs, num_steps, k, team.num_actions)
     obs, state = jax.vmap(env.reset)(reset_keys)
     c = channel_cfg.num_elements
-    msgs = jnp.zeros((num_envs, k, (k - 1) * c), jnp.float32)
-    prev = jnp.zeros((num_envs, k, k - 1, c), jnp.int32)  # each link's symbols at t - 1
-    carry = team.initial_carry(num_envs)
-    # which messages arrived, by recipient (None: all of them, the paper's full team)
+    # Links that follow positions, or an inbox that reads which links arrived (``scaling``):
+    # the receivers are told what they heard. Otherwise (the paper's team) every link exists.
     masked = team.routed or team.cfg.aggregate != "concat"
-    heard = jnp.zeros((num_envs, k, k - 1), bool) if masked else None
-    expert_carry = expert.init(num_envs) if expert is not None else None
     # All the step's randomness is drawn before the loop, in a few large vectorised draws.
     noise = {
         "t": jnp.arange(num_steps),
@@ -131,56 +142,65 @@ def rollout(
         keys = _batch_keys(key)
         noise["expert"] = jax.random.split(keys["expert"], num_steps)
         noise["mix"] = jax.random.uniform(keys["mix"], (num_steps, num_envs, 1))
-    wire = _Wire(channel_cfg, key, num_envs, k, num_steps) if _noisy(channel_cfg) else None
-    if wire is not None:
-        noise["loss"] = wire.step_keys
+    lossy = None
+    if channel_cfg.speaks and not channel_cfg.noise.clean:
+        lossy = channel.lossy.LossyLinks(channel_cfg, key, num_envs, k, num_steps)
+        noise["loss"] = lossy.step_keys
     # Episodes are independent: split them over the mesh's episodes axis, if there is one.
     batched = ("env", "gumbel", "dither", "mix")
     noise.update(split_episodes({n: v for n, v in noise.items() if n in batched}, axis=1))
-    state, obs, msgs, prev, carry, chan_keys, heard = split_episodes(
-        (state, obs, msgs, prev, carry, chan_keys, heard), axis=0
+    init = Carry(
+        env_state=state,
+        obs=obs,
+        msgs=jnp.zeros((num_envs, k, (k - 1) * c), jnp.float32),
+        gru=team.initial_carry(num_envs),
+        expert=expert.init(num_envs) if expert is not None else None,
+        prev_symbols=jnp.zeros((num_envs, k, k - 1, c), jnp.int32),
+        links=None if lossy is None else lossy.init,
+        heard=jnp.zeros((num_envs, k, k - 1), bool) if masked else None,
     )
-    wire_state = None if wire is None else split_episodes(wire.init, axis=0)
+    init = split_episodes(init._replace(expert=None), axis=0)._replace(expert=init.expert)
+    chan_keys = split_episodes(chan_keys, axis=0)
 
-    def step(loop, noise):
-        state, obs, msgs, carry, expert_carry, prev, wire_state, heard = loop
-        t = noise["t"]
-        carry, logits, z = team.act(actor_params, carry, obs, msgs, heard)
+    def step(carry: Carry, noise):
+        t, state, obs = noise["t"], carry.env_state, carry.obs
+        gru, logits, z = team.act(actor_params, carry.gru, obs, carry.msgs, carry.heard)
         log_probs = jax.nn.log_softmax(logits)
         if greedy:
             actions = jnp.argmax(logits, -1)
         else:  # Gumbel-max: a sample of the categorical distribution of ``logits``
             actions = jnp.argmax(jax.lax.stop_gradient(log_probs) + noise["gumbel"], -1)
+        expert_carry = carry.expert
         if expert is not None:
-            expert_carry, expert_actions = expert.step(expert_carry, noise["expert"], state, obs)
+            expert_carry, expert_actions = expert.step(
+                expert_carry, noise["expert"], state, carry.obs
+            )
             use_expert = noise["mix"] < beta
             actions = jnp.where(use_expert, expert_actions, actions)
         else:
             expert_actions = jnp.full(actions.shape, -1)
-        links = None
-        if masked:  # the links of this step; the others send z = 0: null, 0 bits, no gradient
-            mask = scaling.routing_mask(state.pos, team.cfg.neighbours, team.cfg.radius)
-            if channel_cfg.mode == "off":  # nothing is sent, nothing arrives
-                mask = jnp.zeros_like(mask)
-            live = scaling.by_sender(mask)
-            z = jnp.where(live[..., None], z, 0.0)
-            links = live.sum((-2, -1)).astype(jnp.float32)
-        sent = channel.transmit(channel_cfg, z, noise["dither"], chan_keys, t, prev)
-        received, lost = sent.z_hat, None
-        if wire is not None:  # packets lost, late, or replaced by the null or last message
-            received, wire_state, lost = wire.step(noise["loss"], sent, noise["dither"], wire_state)
-        if masked:  # a link that does not exist costs nothing and delivers 0
-            sent = _only_live(sent, live)
-            received = jnp.where(live[..., None], received, 0.0)
-            heard = scaling.by_recipient(mask)
-        next_msgs = channel.deliver(received)
+        # The channel: this step's links (None: all of them), the sender side, the noise on the
+        # wire, the receiver side, and the messages routed to their recipients for step t + 1.
+        routing = None
+        if masked:
+            routing = scaling.routing_mask(state.pos, team.cfg.neighbours, team.cfg.radius)
+        live = channel.live_links(channel_cfg, routing, k, (num_envs,))
+        u = noise["dither"]
+        sent = channel.transmit(channel_cfg, z, u, chan_keys, t, carry.prev_symbols, live=live)
+        arrived, ok, links, lost = sent.z_hat, None, carry.links, None
+        if lossy is not None:  # packets lost, late, or corrupted
+            arrived, ok, links, lost = lossy.step(noise["loss"], sent, u, links)
+        last = None if links is None else links.last
+        got = channel.receive(
+            channel_cfg, arrived, u, ok=ok, last=last, on_drop=channel_cfg.noise.on_drop, live=live
+        )
+        if links is not None:
+            links = links._replace(last=got.last)
         global_state = jax.vmap(env.global_state)(state)
         valid = ~state.done
         next_obs, next_state, rewards, dones, info = jax.vmap(env.step)(
             noise["env"], state, actions
         )
-        full_link = jnp.zeros((num_envs, k, k), jnp.float32)
-        full_link = full_link.at[:, jnp.arange(k)[:, None], channel.others(k)].set(sent.link)
         record = Trajectory(
             log_probs=log_probs,
             actions=actions.astype(jnp.int32),
@@ -190,24 +210,31 @@ def rollout(
             valid=valid,
             dones=dones[:, 0] & valid,
             success=info["success"] & valid,
-            penalty=sent.penalty,
-            payload_bits=sent.payload,
-            wire_bits=sent.wire,
-            link_bits=full_link,
+            penalty=sent.penalty.sum((-2, -1)),
+            payload_bits=sent.payload_bits.sum((-2, -1)),
+            wire_bits=sent.wire_bits.sum((-2, -1)),
+            link_bits=channel.pairs(sent.payload_bits),
             msg_log_probs=sent.log_prob,
             env_states=state if keep_states else None,
-            hidden=jax.lax.stop_gradient(carry) if keep_hidden else None,
+            hidden=jax.lax.stop_gradient(gru) if keep_hidden else None,
             symbols=sent.symbols if keep_symbols else None,
             lost=lost,
-            links=links,
+            links=None if live is None else live.sum((-2, -1)).astype(jnp.float32),
         )
-        loop = (next_state, next_obs, next_msgs, carry, expert_carry, sent.symbols, wire_state)
-        loop = (*loop, heard)
-        return loop, record
+        carry = Carry(
+            env_state=next_state,
+            obs=next_obs,
+            msgs=channel.deliver(got.z_hat),
+            gru=gru,
+            expert=expert_carry,
+            prev_symbols=sent.symbols,
+            links=links,
+            heard=None if live is None else channel.inbox(live),
+        )
+        return carry, record
 
     if remat:
         step = jax.checkpoint(step)
-    init = (state, obs, msgs, carry, expert_carry, prev, wire_state, heard)
     _, traj = jax.lax.scan(step, init, noise)
     return traj
 
@@ -238,86 +265,6 @@ def agent_draws(
     keys = _batch_keys(key)
     gumbel = jax.random.gumbel(keys["act"], (num_steps, num_envs, num_agents, num_actions))
     return jax.random.split(keys["chan"], num_envs), gumbel
-
-
-def _only_live(sent: channel.Sent, live: jax.Array) -> channel.Sent:
-    """``sent`` with the bits of the links that do not exist (``live`` False) set to 0: the
-    null symbol is free in the paper's code, but not in ``fixed`` or ``continuous`` ones."""
-    link = jnp.where(live, sent.link, 0.0)
-    link_wire = jnp.where(live, sent.link_wire, 0.0)
-    return sent._replace(
-        link=link,
-        payload=link.sum((-2, -1)),
-        link_wire=link_wire,
-        wire=link_wire.sum((-2, -1)),
-        z_hat=jnp.where(live[..., None], sent.z_hat, 0.0),
-    )
-
-
-def _noisy(cfg: ChannelConfig) -> bool:
-    return not cfg.noise.clean and cfg.mode != "off"
-
-
-class _Wire:
-    """The noise between senders and receivers inside the scan (``ChannelConfig.noise``): which
-    packets are lost (``channel.noise.lost_packets``), what a receiver uses instead (the null
-    message, i.e. the reconstruction of all-null symbols, or its last good message), and the
-    delay line; under ``code = "permuted"`` flips corrupt symbols instead of losing packets
-    (``channel.permuted.corrupt``). Its keys come from ``fold_in(key, 7)``, outside the
-    rollout's six splits, so a clean channel keeps every other draw, and results, bit for
-    bit."""
-
-    def __init__(self, cfg: ChannelConfig, key, num_envs: int, k: int, num_steps: int):
-        self.cfg, self.noise = cfg, cfg.noise
-        k_bad, k_steps = jax.random.split(jax.random.fold_in(key, 7))
-        self.step_keys = jax.random.split(k_steps, num_steps)
-        links = (num_envs, k, k - 1)
-        c, d = cfg.num_elements, self.noise.delay
-        self.init = {
-            "last": jnp.zeros((*links, c), jnp.float32),
-            "bad": channel.noise.initial_bad(k_bad, self.noise, links),
-            "queue": jnp.zeros((num_envs, d, k, k - 1, c), jnp.float32),
-            "queue_ok": jnp.zeros((num_envs, d, k, k - 1), bool),
-        }
-
-    def step(self, key, sent, u, heard):
-        permuted = self.cfg.code == "permuted"
-        if permuted:  # flips corrupt symbols instead of losing packets
-            key, k_symbols = jax.random.split(key)
-        lost, bad = channel.noise.lost_packets(
-            key, self.noise, sent.link_wire, heard["bad"], self.cfg.ecc, flips_lose=not permuted
-        )
-        now = self._corrupt(k_symbols, sent, u, heard["bad"]) if permuted else sent.z_hat
-        got, ok = now, ~lost
-        heard = {**heard, "bad": bad}
-        if self.noise.delay:  # what arrives now was sent ``delay`` steps ago
-            queue, queue_ok = heard["queue"], heard["queue_ok"]
-            got, ok = queue[:, 0], queue_ok[:, 0]
-            heard["queue"] = jnp.concatenate([queue[:, 1:], now[:, None]], 1)
-            heard["queue_ok"] = jnp.concatenate([queue_ok[:, 1:], ~lost[:, None]], 1)
-        if self.noise.on_drop == "last":
-            instead = heard["last"]
-        elif self.cfg.mode == "discrete":  # all-null symbols, reconstructed with this step's dither
-            instead = jax.lax.stop_gradient(-u / self.cfg.levels)
-        else:
-            instead = jnp.zeros_like(got)
-        got = jnp.where(ok[..., None], got, instead)
-        heard["last"] = jnp.where(ok[..., None], got, heard["last"])
-        return got, heard, lost.sum((-2, -1)).astype(jnp.float32)
-
-    def _corrupt(self, key, sent, u, bad):
-        """The reconstructions of the symbols that cross the permuted channel
-        (``channel.permuted``), with the gradient of their expectation, ``alpha`` times the
-        sent message's."""
-        cfg, noise = self.cfg, self.noise
-        if noise.burst:  # each link's state sets the flip rate of all its elements
-            p01 = p10 = jnp.where(bad, noise.burst_flip_bad, noise.burst_flip_good)[..., None]
-        else:
-            p01, p10 = noise.flip_rates
-        r = channel.permuted.corrupt(key, sent.symbols, cfg.levels, p01, p10)
-        z_hat = r / cfg.levels if u is None else (r - u) / cfg.levels
-        slope = channel.permuted.gradient_scale(cfg.levels, noise) * sent.z_hat
-        return slope + jax.lax.stop_gradient(z_hat - slope)
 
 
 def episode_metrics(traj: Trajectory) -> dict[str, jax.Array]:

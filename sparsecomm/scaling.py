@@ -6,11 +6,12 @@ the concatenated inbox) and one in the task (``NavConfig.goal_view``: who sees w
 - **routing** (``neighbours``, ``radius``): at each step, from the positions the agents have
   then, link i -> j exists when i is one of the ``neighbours`` agents nearest to j (ties to the
   lower index; every agent hears at most ``neighbours`` others) and, with ``radius``, when
-  ``||pos_i - pos_j|| <= radius``. :func:`routing_mask` is that (..., K, K) mask. The rollout
-  (:mod:`sparsecomm.rollout`) sends z = 0 on a link that does not exist, so it carries the null
-  symbol, costs 0 payload bits, 0 wire bits and 0 penalty and passes no gradient; the
-  recipient receives 0 there. Bits and the penalty stay per link, counted by
-  :func:`sparsecomm.channel.transmit` from the real symbols as for the full team.
+  ``||pos_i - pos_j|| <= radius``. :func:`routing_mask` is that (..., K, K) mask, a traced
+  routing input of the channel (``channel.live_links``), as a static ``channel.Routing`` is:
+  a link that does not exist sends z = 0, so it carries the null symbol, costs 0 payload bits,
+  0 wire bits and 0 penalty and passes no gradient; the recipient receives 0 there. Bits and
+  the penalty stay per link, counted by :func:`sparsecomm.channel.transmit` from the real
+  symbols as for the full team.
 - **aggregate** (``aggregate``): ``concat`` feeds the actor every link's message in a fixed
   order, (K - 1) C inputs (the paper's). ``mean`` feeds the mean of the messages of the senders
   it heard (C inputs) and ``attention`` a softmax-weighted sum of them (:class:`AttentionPool`,
@@ -26,9 +27,6 @@ import math
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
-import numpy as np
-
-from sparsecomm.channel import others
 
 AGGREGATES = ("concat", "mean", "attention")
 """How an actor reads its received messages (``AgentConfig.aggregate``)."""
@@ -51,20 +49,6 @@ def routing_mask(pos: jax.Array, neighbours: int | None, radius: float | None) -
         chosen = jax.nn.one_hot(nearest, k, dtype=bool).any(-2)  # (..., j, i)
         mask &= jnp.swapaxes(chosen, -1, -2)
     return mask
-
-
-def by_sender(mask: jax.Array) -> jax.Array:
-    """(..., K, K) mask -> (..., K, K-1) in the channel's sender layout: sender i's slot r goes
-    to ``others(K)[i, r]`` (:mod:`sparsecomm.channel.links`)."""
-    k = mask.shape[-1]
-    return mask[..., np.arange(k)[:, None], others(k)]
-
-
-def by_recipient(mask: jax.Array) -> jax.Array:
-    """(..., K, K) mask -> (..., K, K-1) in the inbox layout: recipient j's s-th link comes from
-    ``others(K)[j, s]`` (``channel.deliver``)."""
-    k = mask.shape[-1]
-    return mask[..., others(k), np.arange(k)[:, None]]
 
 
 def inbox_features(msgs: jax.Array, heard: jax.Array, aggregate: str) -> jax.Array:

@@ -29,6 +29,7 @@ from tqdm import tqdm
 from sparsecomm import checkpoint
 from sparsecomm.configs import to_dict
 from sparsecomm.errors import CheckpointError, DivergedError, RunError
+from sparsecomm.learner import Learner
 from sparsecomm.sharding import RUNS, is_primary, make_mesh, place_runs, to_host, use_mesh
 
 FIRST_COLUMNS = ["seed", "lam", "budget", "update", "env_steps", "episodes"]
@@ -255,14 +256,11 @@ def _start_from(params: dict, start: dict, where: str) -> dict:
 
 
 def run_sweep(
-    learner,
-    config,
+    learner: Learner,
     spec: SweepSpec,
     out: str | Path,
     *,
-    num_updates: int,
-    episodes_per_update: int,
-    steps_per_episode: int,
+    num_updates: int | None = None,
     chunk: int = 10,
     checkpoint_every: int = 10,
     resume: bool = True,
@@ -274,16 +272,26 @@ def run_sweep(
     start_params=None,
     start_from: str = "",
 ):
-    """Run (or resume) a sweep; returns a :class:`Sweep` (final state, runs, elapsed time).
+    """Run (or resume) a sweep of ``learner``; returns a :class:`Sweep` (final state, runs,
+    elapsed time).
+
+    The learner says the rest: its config (recorded in the checkpoint; ``config.num_envs``
+    episodes per update) and its task (``env.config.max_steps`` steps per episode, for the
+    logged env steps). ``num_updates`` stops the sweep there instead of at
+    ``config.num_updates`` (a resume continues from the checkpoint either way). ``kind``: what
+    the run folder records (``sparsecomm.runfolder.KINDS``).
 
     ``start_params`` (one run's parameters, no run axis): every run starts from them, with a
     fresh optimiser state (fine-tuning; ``start_from`` names where they came from, recorded in
     the checkpoint). A resumed sweep continues from its checkpoint instead.
 
-    The runs, and each run's ``episodes_per_update`` episodes, are split over ``devices``
-    (default: all local devices; :func:`sparsecomm.sharding.make_mesh`); pass
-    ``[jax.devices()[0]]`` to keep everything on one device.
+    The runs, and each run's episodes, are split over ``devices`` (default: all local devices;
+    :func:`sparsecomm.sharding.make_mesh`); pass ``[jax.devices()[0]]`` to keep everything on
+    one device.
     """
+    config = learner.config
+    num_updates = config.num_updates if num_updates is None else num_updates
+    episodes_per_update = config.num_envs
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     runs = spec.runs()
@@ -315,7 +323,7 @@ def run_sweep(
         start = int(to_host(state.update).max())
         elapsed = float(old.get("elapsed_s", 0.0))
 
-    steps_per_update = episodes_per_update * steps_per_episode
+    steps_per_update = episodes_per_update * learner.env.config.max_steps
     log = _Log(
         out,
         runs,

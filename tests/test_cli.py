@@ -9,7 +9,16 @@ import pytest
 
 from sparsecomm.cli import main, parse
 from sparsecomm.configs import SMALL_TASK, ILConfig, RLConfig
-from sparsecomm.experiment import load_run
+from sparsecomm.runfolder import (
+    ACTOR,
+    PRETRAINED,
+    TEAM,
+    load_actors,
+    load_run,
+    read_team,
+    runs_of,
+    write_team,
+)
 
 TINY = [
     "--config.env.max-steps",
@@ -57,6 +66,42 @@ def test_train_eval_render(tmp_path, fast_compile):
     main(["render", "--run", str(out), "--index", "3", "--out", str(tmp_path / "t.gif")])
     frames = iio.imread(tmp_path / "t.gif", index=None)
     assert frames.ndim == 4 and 2 <= frames.shape[0] <= 13
+    # An exported team is the run's team, weights only: its config, its run, its actor exactly.
+    main(["export", "--run", str(out), "--index", "3", "--out", str(tmp_path / "team")])
+    config, _, runs, actor = load_run(out)
+    team = read_team(tmp_path / "team")
+    assert team.config == config and team.run == runs[3] and runs_of(tmp_path / "team") == [runs[3]]
+    _assert_same(jax.tree.map(lambda x: np.asarray(x)[3], actor), team.actor)
+
+
+def _assert_same(a, b) -> None:
+    """Two parameter trees hold the same arrays, bit for bit and dtype for dtype."""
+    leaves_a, leaves_b = jax.tree.leaves(a), jax.tree.leaves(b)
+    assert len(leaves_a) == len(leaves_b) > 0
+    for x, y in zip(leaves_a, leaves_b, strict=True):
+        assert np.asarray(x).dtype == np.asarray(y).dtype
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_an_exported_team_is_written_and_read_back_exactly(tmp_path):
+    # One function writes an exported team and one reads it: the shipped team written again
+    # has the same weights byte for byte, the same config and the same run.
+    shipped = read_team(PRETRAINED)
+    batched = jax.tree.map(lambda x: np.asarray(x)[None], shipped.actor)
+    folder = write_team(tmp_path / "again", shipped.config, [shipped.run], batched, 0, "again")
+    assert (folder / ACTOR).read_bytes() == (PRETRAINED / ACTOR).read_bytes()
+    meta, shipped_meta = (json.loads((f / TEAM).read_text()) for f in (folder, PRETRAINED))
+    assert meta["note"] == "again" and meta["kind"] == shipped_meta["kind"] == "train"
+    again = read_team(folder)
+    assert again.config == shipped.config and again.run == shipped.run
+    _assert_same(again.actor, shipped.actor)
+    assert read_team(folder, weights=False).actor is None
+    # Every reader of a folder sees the same team: with a learner, and without one.
+    config, _, runs, actor = load_run(folder)
+    fast = load_actors(folder)
+    assert config == fast.config == shipped.config and runs == fast.runs == [shipped.run]
+    _assert_same(actor, batched)
+    _assert_same(fast.actor, batched)
 
 
 @pytest.mark.parametrize("command, cls", [("train", RLConfig), ("imitate", ILConfig)])

@@ -17,13 +17,15 @@ from flax import serialization
 from sparsecomm import channel
 from sparsecomm.configs import RLConfig, to_dict
 from sparsecomm.deploy import core, wire
+from sparsecomm.deploy.args import Deploy
 from sparsecomm.deploy.faults import Deadlines, Faults, inject
-from sparsecomm.deploy.launcher import kill_plan
+from sparsecomm.deploy.launcher import deploy, kill_plan
 from sparsecomm.envs.navigation import NavConfig
 from sparsecomm.errors import RunError
-from sparsecomm.experiment import PRETRAINED, Deploy, Eval, deploy, evaluate
+from sparsecomm.experiment import Eval, evaluate
 from sparsecomm.jsonfile import write_json
 from sparsecomm.learner import make_team
+from sparsecomm.runfolder import PRETRAINED
 from sparsecomm.sweep import Run
 
 # -- the datagram ---------------------------------------------------------------------------
@@ -72,7 +74,7 @@ def test_decoders_never_crash_on_garbage_payloads():
         for _ in range(300):
             payload = rng.bytes(int(rng.integers(1, 30)))
             try:
-                core.decode_link(cfg, payload, None)
+                channel.decode_link(cfg, payload, None)
             except channel.PacketError:
                 pass
 
@@ -141,7 +143,7 @@ def test_dither_is_regenerated_from_the_shared_key():
     batch = np.asarray(batch)  # (T, B, K, K-1, C)
     for i in range(k):
         for t in range(steps):
-            mine = core.link_dither(cfg, k)(keys[1], t, i)
+            mine = channel.dither_links(keys[1], t, i, channel.others(k)[i], cfg.num_elements)
             np.testing.assert_array_equal(np.asarray(mine), batch[t, 1, i])
 
 
@@ -150,18 +152,20 @@ def test_a_missing_packet_is_the_null_message_or_the_last_one():
     that step's dither (``-u / levels``), or with on_drop last the link's last message."""
     cfg, k = channel.ChannelConfig(), 3
     key = jax.random.key(2)
-    rebuild = core.reconstruct(cfg, k)
     symbols = np.array([[3] * 10, [15] * 10], np.int32)
     last = np.full((2, 10), 0.25, np.float32)
     ok = np.array([True, False])
-    floats = np.zeros((2, 10), np.float32)
-    msgs, heard = rebuild(key, 4, 1, symbols, floats, ok, last, False)
+    msgs, kept = core.receive(cfg, k, "null")(key, 4, 1, symbols, ok, last)
+    assert msgs.shape == (20,)
+    heard = np.asarray(msgs).reshape(2, 10)
     u = [channel.dither(channel.dither_key(key, 4, s, 1), (10,)) for s in (0, 2)]
     np.testing.assert_allclose(heard[0], (3 - u[0]) / 15, rtol=1e-6)
     np.testing.assert_allclose(heard[1], -u[1] / 15, rtol=1e-6)  # the null message
-    assert msgs.shape == (20,)
-    _, heard = rebuild(key, 4, 1, symbols, floats, ok, last, True)
+    np.testing.assert_array_equal(kept, np.stack([heard[0], last[1]]))  # the last good ones
+    msgs, kept = core.receive(cfg, k, "last")(key, 4, 1, symbols, ok, last)
+    heard = np.asarray(msgs).reshape(2, 10)
     np.testing.assert_array_equal(heard[1], last[1])
+    np.testing.assert_array_equal(kept, heard)
 
 
 # -- real deployments -----------------------------------------------------------------------

@@ -198,7 +198,7 @@ def test_rollout_wire_bits_are_the_fitted_packets_of_every_link(tmp_path, fast_c
 
 def test_fit_code_command_writes_a_code_the_channel_accepts(tmp_path, fast_compile):
     from sparsecomm.cli import main
-    from sparsecomm.experiment import PRETRAINED
+    from sparsecomm.runfolder import PRETRAINED
 
     out = tmp_path / "code.json"
     main(["fit-code", "--run", str(PRETRAINED), "--episodes", "16", "--out", str(out)])
@@ -275,16 +275,18 @@ def test_remapped_channel_prices_and_counts_the_remapped_lengths(code, tmp_path)
     sent = channel.transmit(cfg, z, u)
     m = np.asarray(sent.symbols)
     np.testing.assert_array_equal(
-        np.asarray(sent.payload), np.asarray(channel.payload_bits(m, learned)).sum((1, 2, 3))
+        np.asarray(sent.payload_bits).sum((1, 2)),
+        np.asarray(channel.payload_bits(m, learned)).sum((1, 2, 3)),
     )
     expected = np.asarray(channel.expected_bits(z, 15, learned.lengths())).sum((1, 2, 3))
-    np.testing.assert_allclose(np.asarray(sent.penalty), expected, rtol=1e-5)
+    np.testing.assert_allclose(np.asarray(sent.penalty).sum((1, 2)), expected, rtol=1e-5)
     assert cfg.max_bits_per_step(3) == ChannelConfig().max_bits_per_step(3)
 
 
 def test_training_can_start_from_another_runs_parameters(tmp_path, fast_compile):
     from sparsecomm.errors import RunError
-    from sparsecomm.experiment import Train, learner_for, load_params, train
+    from sparsecomm.experiment import Train, train
+    from sparsecomm.runfolder import learner_for, load_params
     from sparsecomm.sweep import SweepSpec, run_sweep
 
     tiny = RLConfig(env=NavConfig(num_agents=3, max_steps=8), num_envs=4, num_updates=2)
@@ -293,8 +295,7 @@ def test_training_can_start_from_another_runs_parameters(tmp_path, fast_compile)
     first = load_params(tmp_path / "a")
     again = dataclasses.replace(tiny, num_updates=0)
     sweep = run_sweep(
-        learner_for(again), again, SweepSpec(2, (0.0,), (None,)), tmp_path / "b",
-        num_updates=0, episodes_per_update=4, steps_per_episode=8, progress=False,
+        learner_for(again), SweepSpec(2, (0.0,), (None,)), tmp_path / "b", progress=False,
         tensorboard=False, start_params=first, start_from="a:0",
     )  # fmt: skip
     for i in range(2):  # every run of the new sweep starts from run 0 of the old one

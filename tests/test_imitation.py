@@ -10,9 +10,9 @@ import pytest
 from sparsecomm.configs import AgentConfig, ChannelConfig, ILConfig
 from sparsecomm.envs.navigation import NavConfig
 from sparsecomm.envs.oracle import oracle_actions
-from sparsecomm.experiment import load_expert, load_run
 from sparsecomm.imitation import make_imitate
 from sparsecomm.rollout import rollout
+from sparsecomm.runfolder import load_expert, load_run
 
 TINY = ILConfig(env=NavConfig(max_steps=16), num_envs=4, num_updates=2)
 
@@ -102,7 +102,7 @@ def test_trained_team_can_be_the_expert(tmp_path, fast_compile):
     )
     cfg = dataclasses.replace(TINY, expert="checkpoint", expert_checkpoint=str(tmp_path / "rl"))
     with pytest.raises(ValueError, match="needs the expert itself"):
-        make_imitate(cfg)  # imitation does not load run folders: experiment.load_expert does
+        make_imitate(cfg)  # imitation does not load run folders: runfolder.load_expert does
     im = make_imitate(cfg, load_expert(cfg))
     state, m = jax.jit(im.train)(jax.random.key(0), 0.0)
     assert np.all(np.isfinite(m["imitation_loss"]))

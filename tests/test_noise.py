@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from sparsecomm import channel
-from sparsecomm.channel.noise import NoiseConfig, NoisyLink, flip_bits, receive
+from sparsecomm.channel.noise import NoiseConfig, NoisyLink, flip_bits
 
 LEVELS = 15
 SHAPE = (10,)
@@ -153,29 +153,26 @@ def test_no_noise_is_bit_identical():
     for m in messages:
         packet = channel.encode(m, "paper")
         assert link.send(packet) == packet
-        message, ok = receive(packet, "paper", SHAPE)
-        assert ok and np.array_equal(message, m)
+        assert np.array_equal(channel.decode(packet, "paper", SHAPE), m)
     assert link_rng.bit_generator.state == state  # a clean link draws nothing
 
 
-@pytest.mark.parametrize("on_drop", ["null", "last"])
 @pytest.mark.parametrize("p", [0.05, 0.005])
-def test_receive_under_flips_never_accepts_a_wrong_message(p, on_drop):
+def test_decoding_under_flips_never_accepts_a_wrong_message(p):
     rng = np.random.default_rng(11)
     n = 1500
     messages = rng.integers(0, LEVELS + 1, (n, *SHAPE)) * (rng.random((n, 1)) < 0.9)
-    link = NoisyLink(NoiseConfig(flip=p, on_drop=on_drop), np.random.default_rng(12))
-    last, failed, expected = None, [], []
+    link = NoisyLink(NoiseConfig(flip=p), np.random.default_rng(12))
+    cfg = channel.ChannelConfig(num_elements=SHAPE[0])
+    failed, expected = [], []
     for m in messages:
         packet = channel.encode(m, "paper")
-        message, ok = receive(link.send(packet), "paper", SHAPE, last, on_drop)
-        if ok:  # accepted: exactly what was sent (a corrupted packet fails the CRC-32)
+        try:  # accepted: exactly what was sent (a corrupted packet fails the CRC-32)
+            message, ok = channel.decode_link(cfg, link.send(packet), None), True
             np.testing.assert_array_equal(message, m)
-            last = message
-        else:
-            fallback = np.zeros(SHAPE) if last is None or on_drop == "null" else last
-            np.testing.assert_array_equal(message, fallback)
-        assert message.dtype == np.int64 and message.shape == SHAPE
+            assert message.dtype == np.int64 and message.shape == SHAPE
+        except channel.PacketError:
+            ok = False
         failed.append(not ok)
         expected.append(1 - (1 - p) ** (8 * len(packet)))  # any flipped bit fails
     expected = np.array(expected)
@@ -183,22 +180,34 @@ def test_receive_under_flips_never_accepts_a_wrong_message(p, on_drop):
     assert abs(np.mean(failed) - expected.mean()) < 5 * se
 
 
-def test_receive_losses_and_fallbacks():
-    m = np.arange(10) % 4
-    message, ok = receive(None, "paper", SHAPE)  # lost
-    assert not ok and message.dtype == np.int64 and message.shape == SHAPE and not message.any()
-    message, ok = receive(None, "paper", SHAPE, m, "last")
-    assert not ok and np.array_equal(message, m) and message is not m
-    message, ok = receive(None, "paper", SHAPE, None, "last")  # nothing good yet: the null
-    assert not ok and not message.any()
-    message, ok = receive(b"\x00\x01", "float32", SHAPE)  # malformed
-    assert not ok and message.dtype == np.float32 and not message.any()
-    message, ok = receive(b"", "float32", SHAPE)  # silence is a message
-    assert ok and message.dtype == np.float32 and not message.any()
+def test_a_missing_packet_is_the_null_message_or_the_last_good_one():
+    """The channel's one rule (``channel.receive``), the same in training and in deploy."""
+    import jax.numpy as jnp
+
+    cfg = channel.ChannelConfig(num_elements=SHAPE[0])
+    m = jnp.asarray(np.stack([np.arange(10) % 4] * 2), jnp.int32)  # two links' symbols
+    u = jnp.asarray(np.random.default_rng(0).uniform(-0.5, 0.5, m.shape), jnp.float32)
+    ok = jnp.array([True, False])
+    last = jnp.full(m.shape, 0.25)
+    got = channel.receive(cfg, m, u, ok=ok)  # default on_drop: the null message
+    np.testing.assert_allclose(got.z_hat[0], (m[0] - u[0]) / LEVELS, rtol=1e-6)
+    np.testing.assert_allclose(got.z_hat[1], -u[1] / LEVELS, rtol=1e-6)
+    assert got.last is None
+    got = channel.receive(cfg, m, u, ok=ok, last=last, on_drop="last")
+    np.testing.assert_array_equal(got.z_hat[1], last[1])
+    np.testing.assert_array_equal(got.last, got.z_hat)  # the good one is the new last
+    values = channel.ChannelConfig(mode="continuous", num_elements=SHAPE[0])
+    got = channel.receive(values, jnp.full(m.shape, 0.5), ok=ok)
+    assert float(got.z_hat[0].min()) == 0.5 and not got.z_hat[1].any()  # null: zeros
+    live = jnp.array([False, True])
+    assert not channel.receive(cfg, m, u, live=live).z_hat[0].any()  # no link, nothing
     with pytest.raises(ValueError, match="on_drop"):
-        receive(b"", "paper", SHAPE, on_drop="zero")
-    with pytest.raises(ValueError, match="shape"):
-        receive(None, "paper", SHAPE, np.zeros(3), "last")
+        channel.receive(cfg, m, u, ok=ok, on_drop="zero")
+    with pytest.raises(ValueError, match="last"):
+        channel.receive(cfg, m, u, ok=ok, on_drop="last")
+    with pytest.raises(channel.PacketError):
+        channel.decode_link(values, b"\x00\x01", None)  # malformed
+    assert not channel.decode_link(values, b"", None).any()  # silence is a message
 
 
 @pytest.mark.parametrize(
@@ -314,16 +323,17 @@ def test_delay_line_delivers_what_was_sent_d_steps_before_and_null_until_then():
     import jax.numpy as jnp
 
     from sparsecomm.channel import ChannelConfig
-    from sparsecomm.rollout import _Wire
 
     cfg = ChannelConfig(num_elements=2, noise=NoiseConfig(delay=2, on_drop="null"))
-    wire = _Wire(cfg, jax.random.key(0), 1, 3, 5)
-    heard = wire.init
+    wire = channel.lossy.LossyLinks(cfg, jax.random.key(0), 1, 3, 5)
+    state = wire.init
     sent_z = [jnp.full((1, 3, 2, 2), 0.1 * (t + 1)) for t in range(5)]
     for t in range(5):
         u = jnp.full((1, 3, 2, 2), 0.25)
-        sent = channel.Sent(sent_z[t], *[None] * 6, jnp.full((1, 3, 2), 24.0))
-        got, heard, lost = wire.step(wire.step_keys[t], sent, u, heard)
+        bits = jnp.full((1, 3, 2), 24.0)
+        sent = channel.Sent(None, sent_z[t], None, bits, bits, None, None)
+        arrived, ok, state, lost = wire.step(wire.step_keys[t], sent, u, state)
+        got = channel.receive(cfg, arrived, u, ok=ok, last=state.last).z_hat
         want = sent_z[t - 2] if t >= 2 else -u / cfg.levels  # null: all-null symbols
         np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-6)
         assert float(lost.sum()) == 0
@@ -333,7 +343,7 @@ def test_eval_command_can_evaluate_a_team_under_other_noise(tmp_path, fast_compi
     import json
 
     from sparsecomm.cli import main
-    from sparsecomm.experiment import PRETRAINED
+    from sparsecomm.runfolder import PRETRAINED
 
     out = tmp_path / "eval.json"
     args = ["eval", "--run", str(PRETRAINED), "--episodes", "16", "--out", str(out)]
@@ -374,6 +384,7 @@ def test_hamming_packets_survive_flips_as_the_block_law_says_and_never_decode_wr
     from sparsecomm.channel.noise import lost_packets
 
     p, n = 0.02, 3000
+    cfg = channel.ChannelConfig(num_elements=SHAPE[0], ecc="hamming74")
     link = NoisyLink(NoiseConfig(flip=p), np.random.default_rng(4))
     rng = np.random.default_rng(5)
     ok, expect = [], []
@@ -382,8 +393,11 @@ def test_hamming_packets_survive_flips_as_the_block_law_says_and_never_decode_wr
         packet = channel.encode(m, "paper")
         if not packet:
             continue
-        got, fine = receive(link.send(ecc.encode(packet)), "paper", SHAPE, ecc="hamming74")
-        assert not fine or (got == m).all()  # accepted only when right
+        try:
+            got, fine = channel.decode_link(cfg, link.send(ecc.encode(packet)), None), True
+            assert (got == m).all()  # accepted only when right
+        except channel.PacketError:
+            fine = False
         ok.append(fine)
         expect.append(ecc.block_survival(p) ** (2 * len(packet)))
     rate, want = np.mean(ok), np.mean(expect)
@@ -408,10 +422,10 @@ def test_channel_with_hamming_counts_the_redundancy_in_its_wire_bits():
     u = channel.dither(jax.random.key(2), z.shape)
     plain = channel.transmit(ChannelConfig(), z, u)
     coded = channel.transmit(ChannelConfig(ecc="hamming74"), z, u)
-    np.testing.assert_array_equal(coded.link_wire, ecc.wire_bits(plain.link_wire, "hamming74"))
+    np.testing.assert_array_equal(coded.wire_bits, ecc.wire_bits(plain.wire_bits, "hamming74"))
     m = np.asarray(coded.symbols)
     for i in np.ndindex(m.shape[:3]):
         packet = ecc.encode(channel.encode(m[i], "paper"))
-        assert 8 * len(packet) == coded.link_wire[i]
+        assert 8 * len(packet) == coded.wire_bits[i]
     with pytest.raises(ValueError, match="ChannelConfig.ecc"):
         ChannelConfig(ecc="turbo")

@@ -12,7 +12,6 @@ from scipy import stats
 from sparsecomm import channel
 from sparsecomm.channel import ChannelConfig, NoiseConfig, permuted
 from sparsecomm.channel.noise import flip_bits
-from sparsecomm.rollout import _Wire
 
 N = 400_000  # symbols per statistical test
 
@@ -122,16 +121,16 @@ def test_the_rollout_wire_corrupts_symbols_and_passes_alpha():
     key = jax.random.PRNGKey(0)
     z = jax.random.uniform(key, (b, k, k - 1, c))
     u = channel.dither(jax.random.PRNGKey(1), z.shape)
-    wire = _Wire(cfg, key, b, k, 1)
+    wire = channel.lossy.LossyLinks(cfg, key, b, k, 1)
 
     def received(z):
         sent = channel.transmit(cfg, z, u)
-        got, _, lost = wire.step(wire.step_keys[0], sent, u, wire.init)
+        got, _, _, lost = wire.step(wire.step_keys[0], sent, u, wire.init)
         return got, (sent, lost)
 
     got, (sent, lost) = jax.jit(received)(z)
     assert float(lost.sum()) == 0  # flips lose no packet: there is no CRC to fail
-    np.testing.assert_array_equal(sent.link_wire, 40.0)  # 10 codewords of 4 bits, always sent
+    np.testing.assert_array_equal(sent.wire_bits, 40.0)  # 10 codewords of 4 bits, always sent
     r = np.rint(np.asarray(got) * cfg.levels + np.asarray(u)).astype(int)
     eps = permuted.symbol_error_rate(15, 0.05, 0.05)
     wrong = (r != np.asarray(sent.symbols)).mean()
@@ -145,8 +144,8 @@ def test_clean_permuted_channel_delivers_the_paper_channel_messages():
     z = jax.random.uniform(jax.random.PRNGKey(2), (4, 3, 2, 10))
     u = channel.dither(jax.random.PRNGKey(3), z.shape)
     a, b = channel.transmit(paper, z, u), channel.transmit(perm, z, u)
-    for field in ("z_hat", "penalty", "payload", "link", "symbols"):
+    for field in ("z_hat", "penalty", "payload_bits", "symbols"):
         np.testing.assert_array_equal(getattr(a, field), getattr(b, field))
-    np.testing.assert_array_equal(b.wire, 6 * 40.0)
+    np.testing.assert_array_equal(b.wire_bits.sum((-2, -1)), 6 * 40.0)
     assert dataclasses.replace(perm, noise=NoiseConfig(flip=0.01)).code_obj.name == "paper"
-    assert jnp.all(a.link_wire[a.link == 0] == 0)  # the paper code's silence is free
+    assert jnp.all(a.wire_bits[a.payload_bits == 0] == 0)  # the paper code's silence is free

@@ -20,9 +20,9 @@ from sparsecomm.cli import main
 from sparsecomm.configs import RLConfig
 from sparsecomm.envs.navigation import NavConfig
 from sparsecomm.errors import CheckpointError
-from sparsecomm.experiment import load_run
 from sparsecomm.jsonfile import write_json
 from sparsecomm.rl import make_train
+from sparsecomm.runfolder import load_run
 from sparsecomm.sharding import raw_keys
 from sparsecomm.sweep import SweepSpec, run_sweep
 
@@ -121,8 +121,6 @@ def test_results_files_never_hold_nan(tmp_path):
 
 CFG = RLConfig(env=NavConfig(max_steps=8), num_envs=4, num_updates=4)
 KW = dict(
-    episodes_per_update=4,
-    steps_per_episode=8,
     chunk=1,
     checkpoint_every=1,
     tensorboard=False,
@@ -133,7 +131,7 @@ KW = dict(
 @pytest.fixture(scope="module")
 def saved(tmp_path_factory):
     folder = tmp_path_factory.mktemp("ckpt") / "run"
-    sweep = run_sweep(make_train(CFG), CFG, SweepSpec(seeds=2), folder, num_updates=2, **KW)
+    sweep = run_sweep(make_train(CFG), SweepSpec(seeds=2), folder, num_updates=2, **KW)
     return folder / "checkpoint", sweep.state
 
 
@@ -209,8 +207,8 @@ def test_resume_refuses_a_damaged_checkpoint_instead_of_starting_over(
 @pytest.mark.slow
 def test_elapsed_time_adds_up_over_resumes(tmp_path):
     tr = make_train(CFG)
-    first = run_sweep(tr, CFG, SweepSpec(), tmp_path / "r", num_updates=2, **KW)
-    second = run_sweep(tr, CFG, SweepSpec(), tmp_path / "r", num_updates=4, **KW)
+    first = run_sweep(tr, SweepSpec(), tmp_path / "r", num_updates=2, **KW)
+    second = run_sweep(tr, SweepSpec(), tmp_path / "r", num_updates=4, **KW)
     meta = checkpoint.load_meta(tmp_path / "r" / "checkpoint")
     assert second.elapsed_s > first.elapsed_s > 0
     assert meta["elapsed_s"] == pytest.approx(second.elapsed_s, rel=0.05)

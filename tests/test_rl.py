@@ -128,33 +128,31 @@ def test_resume_gives_same_parameters_as_uninterrupted_run(tmp_path, fast_compil
     tr = make_train(TINY)
     spec = SweepSpec(seeds=2, lams=(0.0, 0.01))
     kw = dict(
-        episodes_per_update=4,
-        steps_per_episode=8,
         chunk=1,
         checkpoint_every=1,
         tensorboard=False,
         progress=False,
     )
-    full = run_sweep(tr, TINY, spec, tmp_path / "a", num_updates=4, **kw).state
-    run_sweep(tr, TINY, spec, tmp_path / "b", num_updates=2, **kw)  # "dies" after 2 updates
-    resumed = run_sweep(tr, TINY, spec, tmp_path / "b", num_updates=4, **kw).state
+    full = run_sweep(tr, spec, tmp_path / "a", num_updates=4, **kw).state
+    run_sweep(tr, spec, tmp_path / "b", num_updates=2, **kw)  # "dies" after 2 updates
+    resumed = run_sweep(tr, spec, tmp_path / "b", num_updates=4, **kw).state
     for x, y in zip(jax.tree.leaves(full.params), jax.tree.leaves(resumed.params), strict=True):
         np.testing.assert_array_equal(x, y)
     rows_a = (tmp_path / "a" / "metrics.csv").read_text()
     assert rows_a == (tmp_path / "b" / "metrics.csv").read_text()
     # A longer budget extends a finished run: the same parameters as one started with it.
     longer = dataclasses.replace(TINY, num_updates=TINY.num_updates + 2)
-    run_sweep(tr, TINY, spec, tmp_path / "c", num_updates=2, **kw)
-    extended = run_sweep(tr, longer, spec, tmp_path / "c", num_updates=4, **kw).state
+    run_sweep(tr, spec, tmp_path / "c", num_updates=2, **kw)
+    extended = run_sweep(make_train(longer), spec, tmp_path / "c", num_updates=4, **kw).state
     for x, y in zip(jax.tree.leaves(full.params), jax.tree.leaves(extended.params), strict=True):
         np.testing.assert_array_equal(x, y)
     # The checkpoint is msgpack + JSON (no pickle) and a different config refuses to resume.
     assert checkpoint.load_meta(tmp_path / "b" / "checkpoint")["lams"] == [0.0, 0.01]
     other = dataclasses.replace(TINY, lr=0.5)
     with pytest.raises(CheckpointError, match=r"config.lr \(checkpoint: 0.001, now: 0.5\)"):
-        run_sweep(make_train(other), other, spec, tmp_path / "b", num_updates=4, **kw)
+        run_sweep(make_train(other), spec, tmp_path / "b", num_updates=4, **kw)
     # How a run is driven may change on resume: another chunk size is fine.
-    again = run_sweep(tr, TINY, spec, tmp_path / "b", num_updates=4, **{**kw, "chunk": 3})
+    again = run_sweep(tr, spec, tmp_path / "b", num_updates=4, **{**kw, "chunk": 3})
     for x, y in zip(jax.tree.leaves(full.params), jax.tree.leaves(again.state.params), strict=True):
         np.testing.assert_array_equal(x, y)
 

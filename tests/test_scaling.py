@@ -6,11 +6,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from sparsecomm.channel import slots as by_sender
 from sparsecomm.configs import AgentConfig, ChannelConfig, RLConfig
 from sparsecomm.envs.navigation import NavConfig, NavigationEnv
 from sparsecomm.learner import make_team
 from sparsecomm.rollout import episode_metrics, rollout
-from sparsecomm.scaling import by_sender, routing_mask
+from sparsecomm.scaling import routing_mask
 
 
 def _run(cfg: RLConfig, num_envs=2, key=1, **kw):

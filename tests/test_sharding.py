@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 from flax import serialization
 
-from sparsecomm.experiment import evaluate_runs, load_run
+from sparsecomm.experiment import evaluate_runs
+from sparsecomm.runfolder import load_run
 
 # Tiny runs whose time is compilation: compile with most XLA optimisations off (as the other
 # end-to-end tests do, tests/conftest.py); the SPMD partitioner still runs.
@@ -48,12 +49,11 @@ def test_sweep_sharded_over_devices_and_processes_matches_one_device(tmp_path, f
             state = init(*place_runs((keys, jax.numpy.zeros(2)), mesh))
             lowered = steps.lower(state, 1).as_text()
         assert "sharding_constraint" in lowered and '"episodes"' in lowered
-        kw = dict(num_updates=3, episodes_per_update=4, steps_per_episode=8, chunk=3,
-                  tensorboard=False, progress=False)
-        sharded = run_sweep(tr, cfg, spec, r"{tmp_path}/a", **kw).state
+        kw = dict(num_updates=3, chunk=3, tensorboard=False, progress=False)
+        sharded = run_sweep(tr, spec, r"{tmp_path}/a", **kw).state
         devs = {{d for leaf in jax.tree.leaves(sharded.params) for d in leaf.devices()}}
         assert len(devs) == 4, devs
-        single = run_sweep(tr, cfg, spec, r"{tmp_path}/b", devices=[jax.devices()[0]], **kw).state
+        single = run_sweep(tr, spec, r"{tmp_path}/b", devices=[jax.devices()[0]], **kw).state
         for x, y in zip(jax.tree.leaves(sharded.params), jax.tree.leaves(single.params)):
             np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-4, atol=1e-4)
         a = open(r"{tmp_path}/a/metrics.csv").read().splitlines()

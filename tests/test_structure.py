@@ -83,3 +83,137 @@ def test_the_graph_reader_sees_real_imports():
     assert "sparsecomm.channel.quantizer" in graph["sparsecomm.channel.codes"]
     assert "sparsecomm.learner" in graph["sparsecomm.rl"]
     assert "sparsecomm.experiment" in graph["sparsecomm.cli"]
+
+
+def _private_uses(path: Path, modules: set[str], source: str | None = None) -> list[str]:
+    """Where ``path`` (or ``source`` read as that file) reaches into another sparsecomm module
+    for a ``_private`` name: ``from sparsecomm.X import _name``, or ``X._name`` with ``X`` a
+    sparsecomm module it imported."""
+    name = _module_name(path)
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    tree = ast.parse(path.read_text() if source is None else source)
+    aliases: dict[str, str] = {}  # local name -> the sparsecomm module it is bound to
+    found = []
+
+    def private(attr: str) -> bool:
+        return attr.startswith("_") and not attr.endswith("__")
+
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            for a in node.names:
+                if a.name in modules and a.asname:
+                    aliases[a.asname] = a.name
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                anchor = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*anchor, base] if base else anchor)
+            if base not in modules or base == name:
+                continue
+            for a in node.names:
+                if f"{base}.{a.name}" in modules:
+                    aliases[a.asname or a.name] = f"{base}.{a.name}"
+                elif private(a.name):
+                    found.append(f"{name}:{node.lineno}: from {base} import {a.name}")
+    for node in ast.walk(tree):
+        if (
+            isinstance(node, ast.Attribute)
+            and isinstance(node.value, ast.Name)
+            and aliases.get(node.value.id, name) != name
+            and private(node.attr)
+        ):
+            found.append(f"{name}:{node.lineno}: {aliases[node.value.id]}.{node.attr}")
+    return found
+
+
+def test_no_module_uses_another_modules_private_names():
+    paths = sorted(ROOT.rglob("*.py"))
+    modules = {_module_name(p) for p in paths}
+    found = [use for p in paths for use in _private_uses(p, modules)]
+    assert found == [], "private names used across modules:\n" + "\n".join(found)
+
+
+def test_the_private_name_reader_sees_both_forms():
+    # A module of the package (never written), read from ``source``.
+    probe = ROOT / "probe.py"
+    modules = {"sparsecomm", "sparsecomm.experiment", "sparsecomm.probe"}
+    source = (
+        "from sparsecomm.experiment import _at_least, load_run\n"
+        "from sparsecomm import experiment as ex\n"
+        "ex._check_index(1, 2), ex.load_run, ex.__doc__\n"
+    )
+    uses = _private_uses(probe, modules, source)
+    assert uses == [
+        "sparsecomm.probe:1: from sparsecomm.experiment import _at_least",
+        "sparsecomm.probe:3: sparsecomm.experiment._check_index",
+    ]
+
+
+def test_run_folders_sit_below_the_commands_and_deploy():
+    # The run folder's module serves experiment, codestats and deploy: it imports none of them,
+    # and deploy reads run folders through it, not through experiment.
+    graph = _graph()
+    above = ("sparsecomm.experiment", "sparsecomm.codestats", "sparsecomm.cli", "sparsecomm.deploy")
+    assert sorted(d for d in graph["sparsecomm.runfolder"] if d.startswith(above)) == []
+    for module, deps in graph.items():
+        if module.startswith("sparsecomm.deploy"):
+            assert "sparsecomm.experiment" not in deps, module
+
+
+def test_only_the_run_folder_module_names_the_exported_team_files():
+    # One writer and one reader of an exported team: no other module's code (docstrings aside)
+    # spells its file names.
+    found = []
+    for path in sorted(ROOT.rglob("*.py")):
+        if _module_name(path) == "sparsecomm.runfolder":
+            continue
+        tree = ast.parse(path.read_text())
+        docs = {id(n.value) for n in ast.walk(tree) if isinstance(n, ast.Expr)}
+        for node in ast.walk(tree):
+            if (
+                isinstance(node, ast.Constant)
+                and isinstance(node.value, str)
+                and id(node) not in docs
+                and ("team.json" in node.value or "actor.msgpack" in node.value)
+            ):
+                found.append(f"{_module_name(path)}:{node.lineno}: {node.value!r}")
+    assert found == [], "\n".join(found)
+
+
+def _mode_comparisons(source: str) -> list[int]:
+    """Lines of ``source`` that compare a ``.mode`` attribute with anything (``==``, ``!=``,
+    ``in``, ``not in``): what a caller should ask ``ChannelConfig`` instead."""
+    lines = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Compare):
+            sides = [node.left, *node.comparators]
+            if any(isinstance(s, ast.Attribute) and s.attr == "mode" for s in sides):
+                lines.append(node.lineno)
+    return lines
+
+
+def test_only_the_channel_compares_channel_modes():
+    # Callers ask ChannelConfig what its mode does (speaks, quantizes, sends_symbols, ...), so a
+    # new mode is written in channel/ alone.
+    assert _mode_comparisons("if cfg.channel.mode == 'off':\n    pass\nx = c.mode in M\n") == [1, 3]
+    found = [
+        f"{_module_name(p)}:{line}"
+        for p in sorted(ROOT.rglob("*.py"))
+        if not _module_name(p).startswith("sparsecomm.channel")
+        for line in _mode_comparisons(p.read_text())
+    ]
+    assert found == [], "mode strings compared outside channel/:\n" + "\n".join(found)
+
+
+def test_deploy_draws_no_dither_and_rebuilds_no_message_of_its_own():
+    # A deployed agent runs the channel's own sender and receiver sides (channel.transmit,
+    # channel.receive, channel.dither_links): none of the quantizer's primitives appear in
+    # deploy/.
+    primitives = {"dither", "dither_key", "dequantize", "quantize", "quantize_dithered"}
+    found = []
+    for path in sorted((ROOT / "deploy").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            name = node.attr if isinstance(node, ast.Attribute) else getattr(node, "id", None)
+            if name in primitives:
+                found.append(f"{_module_name(path)}:{node.lineno}: {name}")
+    assert found == [], "\n".join(found)

@@ -12,16 +12,21 @@ Usable on its own in any JAX model::
     packet = channel.encode(m, "paper")                    # one packet, b"" when m is all null
     assert (channel.decode(packet, "paper", m.shape) == m).all()  # malformed: PacketError
 
-Between agents (``links``): ``ChannelConfig`` says how a team talks (mode, levels, elements,
-code); ``transmit(cfg, z, u, keys, t)`` sends a batch of links ``(B, K, K-1, C)`` in any mode
-and counts what it cost; ``deliver`` routes the reconstructions to their recipients. This
+Between agents: ``ChannelConfig`` (``config``) says how a team talks (mode, levels, elements,
+code) and what its mode does (``speaks``, ``quantizes``, ``sends_symbols``, ...). The one
+channel (``links``), used by the rollout, the plug-in layer and every deployed agent:
+``transmit(cfg, z, u, keys, t, live=live)`` is the sender side for links laid out by sender
+slot ``(..., K, K-1, C)``, in any mode, with what it cost; ``receive(cfg, message, u, ok=ok,
+last=last)`` the receiver side, with the one rule for a missing packet; ``live_links`` turns a
+``Routing`` or a traced mask into the links that exist; ``deliver`` routes reconstructions to
+their recipients; ``lossy.LossyLinks`` is the noise between them inside a rollout. This
 package imports nothing else of sparsecomm.
 
 Any other team (``layer``, docs/plugin.md): ``send(key, z, routing, t=t)`` sends signals over any
 routing (``Routing``) and returns ``Messages`` (symbols, inbox, penalty, bits per link).
 """
 
-from sparsecomm.channel import ecc, permuted
+from sparsecomm.channel import ecc, lossy, permuted
 from sparsecomm.channel.codes import (
     CODE_NAMES,
     MAX_ELEMENTS,
@@ -36,21 +41,32 @@ from sparsecomm.channel.codes import (
     payload_bits,
     wire_bits,
 )
+from sparsecomm.channel.config import CHANNEL_MODES, ChannelConfig
 from sparsecomm.channel.fitted import FittedCode, fit
 from sparsecomm.channel.gate import GATES, gate, hard_gate
-from sparsecomm.channel.layer import Messages, Routing, reconstruct, send
+from sparsecomm.channel.layer import Messages, reconstruct, send
 from sparsecomm.channel.links import (
-    CHANNEL_MODES,
-    ChannelConfig,
+    Received,
+    Routing,
     Sent,
+    decode_link,
     deliver,
+    dither_links,
+    encode_link,
+    inbox,
     link_dither,
     link_tables,
+    live_links,
+    null_message,
     others,
+    pairs,
+    receive,
+    routing_mask,
+    slots,
     step_dither,
     transmit,
 )
-from sparsecomm.channel.noise import NoiseConfig, NoisyLink, receive
+from sparsecomm.channel.noise import NoiseConfig, NoisyLink
 from sparsecomm.channel.penalty import bit_penalty, expected_bits
 from sparsecomm.channel.quantizer import (
     dequantize,
@@ -72,25 +88,34 @@ __all__ = [
     "FittedCode",
     "Messages",
     "PacketError",
+    "Received",
     "Routing",
     "Sent",
     "as_code",
     "bit_penalty",
     "decode",
+    "decode_link",
     "deliver",
     "dequantize",
     "dither",
     "dither_key",
+    "dither_links",
     "ecc",
+    "lossy",
     "encode",
+    "encode_link",
     "expected_bits",
     "fit",
     "frequency_remap",
     "gate",
     "hard_gate",
+    "inbox",
     "link_dither",
     "link_tables",
+    "live_links",
+    "null_message",
     "others",
+    "pairs",
     "permuted",
     "packet_bits",
     "paper_length",
@@ -99,7 +124,9 @@ __all__ = [
     "quantize_dithered",
     "receive",
     "reconstruct",
+    "routing_mask",
     "send",
+    "slots",
     "step_dither",
     "transmit",
     "wire_bits",

@@ -29,132 +29,45 @@ drawn in one vectorised call. Each link is ``channel.quantize(dither_key(key, t,
 z[i, j], levels)``: the same symbols, the same reconstruction (bit for bit against the compiled
 ``channel.quantize``; ``send`` always runs compiled), whose gradient with respect to ``z`` is
 the identity.
+
+This module is a face: it checks its arguments and converts between its ``(K, K)`` layout and
+the channel's sender-slot layout; the sending, counting and rebuilding are the channel's one
+sender side and receiver side (``channel.links.transmit`` and ``channel.links.receive``), the
+same the rollout and every deployed agent run.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import functools
-import math
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sparsecomm.channel.codes import Code, as_code, payload_bits, wire_bits
+from sparsecomm.channel.codes import Code, as_code
+from sparsecomm.channel.config import ChannelConfig
 from sparsecomm.channel.fitted import FittedCode
 from sparsecomm.channel.gate import gate as apply_gate
-from sparsecomm.channel.penalty import code_penalty
+from sparsecomm.channel.links import (
+    Routing,
+    dither_links,
+    key_batch_shape,
+    others,
+    pairs,
+    receive,
+    routing_mask,
+    slots,
+    transmit,
+)
 from sparsecomm.channel.quantizer import (
     MAX_AGENTS,
     MAX_STEPS,
     check_levels,
     check_unit_interval,
-    dequantize,
-    dither,
-    dither_key,
-    quantize_dithered,
 )
 
 __all__ = ["Messages", "Routing", "reconstruct", "send"]
-
-
-@dataclasses.dataclass(frozen=True)
-class Routing:
-    """Which links exist: ``mask[i, j]`` is True when sender i may send to recipient j.
-
-    Hashable, so it can be a static argument of ``jax.jit`` or a field of a frozen config. Build
-    it with :meth:`all_to_all`, :meth:`from_neighbours` or :meth:`from_mask`. Self-links do not
-    exist: the diagonal is always False.
-    """
-
-    rows: tuple[tuple[bool, ...], ...]
-    """``rows[i][j]``: link i -> j exists. K rows of K booleans, the diagonal False."""
-
-    def __post_init__(self):
-        k = len(self.rows)
-        if not 1 <= k <= MAX_AGENTS:
-            raise ValueError(f"Routing needs between 1 and {MAX_AGENTS} agents, got {k}")
-        if any(len(row) != k for row in self.rows):
-            lengths = sorted({len(row) for row in self.rows})
-            raise ValueError(
-                f"Routing.rows must be {k} rows of {k} booleans, got lengths {lengths}"
-            )
-        if any(self.rows[i][i] for i in range(k)):
-            raise ValueError(
-                "Routing.mask must have a False diagonal (an agent does not send to itself); "
-                "use mask & ~numpy.eye(K, dtype=bool)"
-            )
-
-    @property
-    def mask(self) -> np.ndarray:
-        """(K, K) bool: ``mask[i, j]`` when link sender i -> recipient j exists."""
-        return np.array(self.rows, dtype=bool).reshape(len(self.rows), len(self.rows))
-
-    @property
-    def num_agents(self) -> int:
-        """K, the number of agents."""
-        return len(self.rows)
-
-    @property
-    def num_links(self) -> int:
-        """The number of links that exist (directed)."""
-        return int(self.mask.sum())
-
-    def recipients(self, sender: int) -> list[int]:
-        """The agents ``sender`` may send to, in increasing order."""
-        return [int(j) for j in np.flatnonzero(self.mask[sender])]
-
-    def senders(self, recipient: int) -> list[int]:
-        """The agents ``recipient`` hears from, in increasing order."""
-        return [int(i) for i in np.flatnonzero(self.mask[:, recipient])]
-
-    @classmethod
-    def all_to_all(cls, num_agents: int) -> Routing:
-        """Every agent sends to every other agent (the paper's team), K (K - 1) links."""
-        if isinstance(num_agents, bool) or not isinstance(num_agents, (int, np.integer)):
-            raise ValueError(
-                f"num_agents must be an integer in [1, {MAX_AGENTS}], got {num_agents!r}"
-            )
-        if not 1 <= num_agents <= MAX_AGENTS:
-            raise ValueError(
-                f"num_agents must be an integer in [1, {MAX_AGENTS}], got {num_agents}"
-            )
-        return cls.from_mask(~np.eye(int(num_agents), dtype=bool))
-
-    @classmethod
-    def from_neighbours(cls, neighbours) -> Routing:
-        """Routing from out-neighbour lists: ``neighbours[i]`` lists the agents sender i sends to
-        (K lists, one per agent, each of distinct agents in [0, K) other than i). For an
-        undirected graph list each edge in both directions."""
-        lists = [list(row) for row in neighbours]
-        k = len(lists)
-        if not 1 <= k <= MAX_AGENTS:
-            raise ValueError(f"neighbours must be 1 to {MAX_AGENTS} lists, one per agent, got {k}")
-        mask = np.zeros((k, k), dtype=bool)
-        for i, row in enumerate(lists):
-            for j in row:
-                if isinstance(j, bool) or not isinstance(j, (int, np.integer)) or not 0 <= j < k:
-                    raise ValueError(
-                        f"neighbours[{i}] must hold agent indices in [0, {k}), got {j!r}"
-                    )
-                if j == i:
-                    raise ValueError(f"neighbours[{i}] must not hold {i} itself (no self-links)")
-                if mask[i, j]:
-                    raise ValueError(f"neighbours[{i}] lists agent {j} twice")
-                mask[i, j] = True
-        return cls.from_mask(mask)
-
-    @classmethod
-    def from_mask(cls, mask) -> Routing:
-        """Routing from a concrete (K, K) boolean array, ``mask[i, j]``: link i -> j exists."""
-        a = np.asarray(mask)
-        if a.ndim != 2 or a.shape[0] != a.shape[1] or a.dtype != np.bool_:
-            raise ValueError(
-                f"mask must be a square (K, K) boolean array, got {a.dtype} of shape {a.shape}"
-            )
-        return cls(tuple(tuple(bool(x) for x in row) for row in a))
 
 
 class Messages(NamedTuple):
@@ -196,42 +109,9 @@ def _check_static_int(value, name: str, lo: int, hi: int) -> None:
         raise ValueError(f"{name} must be an integer in [{lo}, {hi}), got {value!r}")
 
 
-def _mask_array(routing, num_agents: int, batch: tuple[int, ...]) -> jax.Array:
-    """The routing as a jnp bool array broadcast to ``batch + (K, K)``, diagonal cleared."""
-    if isinstance(routing, Routing):
-        if routing.num_agents != num_agents:
-            raise ValueError(
-                f"routing must be for {num_agents} agents (z's agent axes), got a Routing for "
-                f"{routing.num_agents}"
-            )
-        mask = jnp.asarray(routing.mask)
-    else:
-        mask = jnp.asarray(routing)
-        if mask.dtype != jnp.bool_ or mask.ndim < 2 or mask.shape[-2:] != (num_agents,) * 2:
-            raise ValueError(
-                f"routing must be a Routing or a boolean array of shape (..., {num_agents}, "
-                f"{num_agents}), got {mask.dtype} of shape {mask.shape}"
-            )
-        mask = mask & ~jnp.eye(num_agents, dtype=bool)
-    try:
-        return jnp.broadcast_to(mask, (*batch, num_agents, num_agents))
-    except ValueError:
-        raise ValueError(
-            f"routing's leading axes {mask.shape[:-2]} must broadcast to z's batch shape {batch}"
-        ) from None
-
-
-def _key_batch_shape(key: jax.Array) -> tuple[int, ...]:
-    if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
-        return key.shape
-    if key.dtype != jnp.uint32 or key.ndim < 1:
-        raise ValueError(f"key must be a PRNG key (typed or raw uint32), got {key.dtype}")
-    return key.shape[:-1]
-
-
 def _episode_keys(key: jax.Array, t, batch: tuple[int, ...]):
     """Check ``key`` (one key, or one per batch entry) and broadcast ``t`` to the batch."""
-    kshape = _key_batch_shape(jnp.asarray(key) if not isinstance(key, jax.Array) else key)
+    kshape = key_batch_shape(jnp.asarray(key) if not isinstance(key, jax.Array) else key)
     if kshape not in ((), batch):
         raise ValueError(
             f"key must be one key or one per batch entry (batch shape {batch}), got keys of "
@@ -242,32 +122,6 @@ def _episode_keys(key: jax.Array, t, batch: tuple[int, ...]):
     except ValueError:
         raise ValueError(f"t must be a scalar or broadcast to z's batch shape {batch}") from None
     return key, t
-
-
-def _over_links(fn, key: jax.Array, t: jax.Array, num_agents: int, *arrays):
-    """``fn(dither_key(key, t, i, j), *link_arrays)`` for every link i -> j of every batch entry,
-    in one ``vmap`` over all links (one level of ``vmap``: nested ones compile ~3x slower).
-
-    ``key`` is one key (shared by the batch) or one per batch entry; ``t`` has the batch shape;
-    each of ``arrays`` is ``(*batch, K, K, ...)``. Returns ``(*batch, K, K, ...)``."""
-    batch = t.shape
-    n, links = math.prod(batch), num_agents * num_agents
-    senders, recipients = np.meshgrid(np.arange(num_agents), np.arange(num_agents), indexing="ij")
-    i = jnp.asarray(np.tile(senders.ravel(), n))
-    j = jnp.asarray(np.tile(recipients.ravel(), n))
-    steps = jnp.repeat(t.reshape(n), links)
-    flat = [a.reshape(n * links, *a.shape[len(batch) + 2 :]) for a in arrays]
-    if _key_batch_shape(key):  # one key per batch entry: repeat it for each of its links
-        key = jnp.repeat(key.reshape(n, *key.shape[len(batch) :]), links, axis=0)
-        key_axis = 0
-    else:
-        key_axis = None
-
-    def one_link(k, tt, ii, jj, *xs):
-        return fn(dither_key(k, tt, ii, jj), *xs)
-
-    out = jax.vmap(one_link, (key_axis, 0, 0, 0, *([0] * len(flat))))(key, steps, i, j, *flat)
-    return out.reshape(*batch, num_agents, num_agents, *out.shape[1:])
 
 
 def send(
@@ -330,7 +184,7 @@ def send(
         raise ValueError(f"z must have at most {MAX_AGENTS} agents, got {k}")
     _check_static_int(t, "t", 0, MAX_STEPS)
     batch = z.shape[:-3]
-    mask = _mask_array(routing, k, batch)
+    mask = routing_mask(routing, k, batch)
     key, t = _episode_keys(key, t, batch)
     check_unit_interval(jnp.where(mask[..., None], z, 0.0))  # concrete z only
     return _send(key, z, mask, t, prev, levels, code)
@@ -338,21 +192,34 @@ def send(
 
 @functools.partial(jax.jit, static_argnums=(5, 6))
 def _send(key, z, mask, t, prev, levels: int, code) -> Messages:
-    """:func:`send` once its arguments are checked (one compiled program, also when eager)."""
+    """:func:`send` once its arguments are checked (one compiled program, also when eager): the
+    channel's own :func:`~sparsecomm.channel.links.transmit` on the links by sender slot."""
     k, c = z.shape[-2], z.shape[-1]
-    live = mask[..., None]
-    z_sent = jnp.where(live, z, 0.0)  # a missing link sends z = 0: m = 0 always, no gradient
-    u = _over_links(lambda link_key: dither(link_key, (c,)), key, t, k)
-    m, z_hat = quantize_dithered(z_sent, u, levels)
-    m = jnp.where(live, m, 0)
-    z_hat = jnp.where(live, z_hat, 0.0)
-    penalty = jnp.where(mask, code_penalty(z_sent, levels, code).sum(-1), 0.0)
-    payload = jnp.where(mask, payload_bits(m, code).sum(-1), 0).astype(jnp.int32)
-    wire = jnp.where(mask, wire_bits(m, code, prev=prev), 0).astype(jnp.int32)
+    live = slots(mask)
+    u = dither_links(key, t, np.arange(k)[:, None], others(k), c)
+    prev = None if prev is None else slots(prev, 1)
+    sent = transmit(_discrete(levels), slots(z, 1), u, prev=prev, live=live, code=code)
+    z_hat = pairs(sent.z_hat, 1)
     inbox = jnp.swapaxes(z_hat, -3, -2)
     heard = mask.sum(-2).astype(jnp.float32)  # senders of each recipient
     mean = inbox.sum(-2) / jnp.maximum(heard, 1.0)[..., None]
-    return Messages(m, z_hat, inbox, mean, penalty, payload, wire, mask)
+    return Messages(
+        pairs(sent.symbols, 1),
+        z_hat,
+        inbox,
+        mean,
+        pairs(sent.penalty),
+        pairs(sent.payload_bits.astype(jnp.int32)),
+        pairs(sent.wire_bits.astype(jnp.int32)),
+        mask,
+    )
+
+
+@functools.lru_cache(maxsize=64)
+def _discrete(levels: int) -> ChannelConfig:
+    """The channel the layer runs: the paper's quantizer with ``levels`` (bits are counted in
+    the code the caller gives :func:`send`)."""
+    return ChannelConfig(levels=levels)
 
 
 def reconstruct(
@@ -376,7 +243,7 @@ def reconstruct(
     k = symbols.shape[-2]
     _check_static_int(t, "t", 0, MAX_STEPS)
     batch = symbols.shape[:-3]
-    mask = _mask_array(routing, k, batch)
+    mask = routing_mask(routing, k, batch)
     symbols = jnp.where(mask[..., None], symbols, 0)
     if not isinstance(symbols, jax.core.Tracer) and symbols.size:
         lo, hi = int(symbols.min()), int(symbols.max())
@@ -388,7 +255,9 @@ def reconstruct(
 
 @functools.partial(jax.jit, static_argnums=(4,))
 def _reconstruct(key, symbols, mask, t, levels: int) -> jax.Array:
-    """:func:`reconstruct` once its arguments are checked."""
-    k = symbols.shape[-2]
-    z_hat = _over_links(lambda link_key, m: dequantize(link_key, m, levels), key, t, k, symbols)
-    return jnp.swapaxes(jnp.where(mask[..., None], z_hat, 0.0), -3, -2)
+    """:func:`reconstruct` once its arguments are checked: the channel's own
+    :func:`~sparsecomm.channel.links.receive` on the links by sender slot."""
+    k, c = symbols.shape[-2], symbols.shape[-1]
+    u = dither_links(key, t, np.arange(k)[:, None], others(k), c)
+    got = receive(_discrete(levels), slots(symbols, 1), u, live=slots(mask))
+    return jnp.swapaxes(pairs(got.z_hat, 1), -3, -2)

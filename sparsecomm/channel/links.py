@@ -1,23 +1,38 @@
-"""The channel as it is used between agents: its configuration, routing and one ``transmit``.
+"""The one channel between agents: the layout of its links, who may talk to whom, each link's
+dither, the sender side (:func:`transmit`) and the receiver side (:func:`receive`).
 
-Every agent i sends one signal ``z^{i->j}`` of ``num_elements`` elements to every other agent j
-at every step. A batch of links is laid out by sender, ``(B, K, K-1, C)``: sender i's slot r
-goes to recipient ``others(K)[i, r]`` (the other agents in increasing order). :func:`transmit`
-sends a batch of links through the channel in any mode and counts what it cost; :func:`deliver`
-routes the reconstructions to their recipients, ``(B, K, (K-1) C)``.
+The rollout, the plug-in layer (``channel.layer``) and every deployed agent (``deploy``) call
+these functions and no others, so a new mode, code or rule is written here once.
 
-The dither of link i -> j at step t of an episode with channel key ``key`` is drawn from
-``dither_key(key, t, i, j)`` (docs/spec.md section 1), so the receiver can regenerate it alone:
-:func:`link_dither` draws every step's dither of a batch at once (one large draw instead of
-many small ones inside the time loop).
+Layout. Every array indexed by link is laid out by **sender slot**, ``(..., K, K-1, ...)``:
+sender i's slot r goes to recipient ``others(K)[i, r]`` (the other agents in increasing order).
+:func:`slots` and :func:`pairs` convert to and from the ``(..., K, K, ...)`` layout by sender
+and recipient (zero diagonal); :func:`inbox` re-orders links by recipient (recipient j's s-th
+link comes from ``others(K)[j, s]``) and :func:`deliver` flattens it to the actors' input,
+``(..., K, (K-1) C)``. A deployed agent holds one row of it: its own K - 1 sender slots, or as a
+receiver its K - 1 incoming links.
+
+Routing. Which links exist is one boolean array by sender and recipient, ``mask[..., i, j]``:
+a static :class:`Routing` (hashable, a jit static argument) and a traced mask (links that follow
+the agents' positions, ``sparsecomm.scaling.routing_mask``) are two inputs of
+:func:`live_links`, which turns either into the sender-slot ``live`` mask that
+:func:`transmit` and :func:`receive` take. A link that does not exist sends z = 0 (the null
+symbol), costs 0 payload bits, 0 wire bits and 0 penalty, passes no gradient and delivers 0.
+
+Dither. Link i -> j at step t of an episode with channel key ``key`` draws its dither from
+``dither_key(key, t, i, j)`` (docs/spec.md section 1), so a receiver regenerates it alone:
+:func:`dither_links` draws the dither of any set of links, steps and episodes in one vectorised
+call (:func:`link_dither`: every step of a batch; :func:`step_dither`: one step).
+
+Missing packets. :func:`receive` applies the one rule for a packet that did not arrive (lost,
+late, or garbled): the null message (all-null symbols, rebuilt with the link's dither) or, with
+``on_drop = "last"``, the link's last good reconstruction (zeros before the first).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
-import os
-from pathlib import Path
+import math
 from typing import NamedTuple
 
 import jax
@@ -25,150 +40,24 @@ import jax.numpy as jnp
 import numpy as np
 from jax.scipy.special import gammaln
 
-from sparsecomm.channel.codes import CODE_NAMES, Code, frequency_remap, payload_bits, wire_bits
-from sparsecomm.channel.ecc import ECC_NAMES
+from sparsecomm.channel.codes import Code, PacketError, decode, encode, payload_bits, wire_bits
+from sparsecomm.channel.config import ChannelConfig
+from sparsecomm.channel.ecc import decode as ecc_decode
+from sparsecomm.channel.ecc import encode as ecc_encode
 from sparsecomm.channel.ecc import wire_bits as ecc_bits
 from sparsecomm.channel.fitted import FittedCode
-from sparsecomm.channel.noise import NoiseConfig
+from sparsecomm.channel.noise import ON_DROP
 from sparsecomm.channel.penalty import code_penalty
 from sparsecomm.channel.permuted import packet_bits as permuted_bits
 from sparsecomm.channel.quantizer import (
     MAX_AGENTS,
     MAX_STEPS,
-    check_levels,
     dither,
     dither_key,
     quantize_dithered,
 )
 
-CHANNEL_MODES = ("discrete", "continuous", "off", "reinforced")
-CHANNEL_CODES = (*CODE_NAMES[:2], "fitted", "remapped", "permuted")
-
-
-@dataclasses.dataclass(frozen=True)
-class ChannelConfig:
-    """The message channel between agents (docs/spec.md sections 1-3)."""
-
-    mode: str = "discrete"
-    """``discrete``: dithered quantization, the paper's method. ``continuous``: real-valued
-    messages sent as float32 (a baseline, 32 bits per element). ``off``: no communication
-    (messages are zeros, 0 bits; a baseline). ``reinforced``: reinforced communication learning
-    (RCL, a baseline): each element's symbol is sampled as an action, m ~ Binomial(levels, z),
-    the receiver gets m / levels with no gradient through the channel, and the senders learn by
-    policy gradient on the log-probability of the symbols sent, with ``bit_cost`` per bit."""
-    levels: int = 15
-    """|M|, symbols per element are {0, ..., levels}. SPEC section 1."""
-    num_elements: int = 10
-    """C, elements of the signal z each agent sends to each recipient per step. Paper: 10."""
-    code: str = "paper"
-    """Code used to count payload bits (and frame them on the wire) for the ``discrete`` and
-    ``reinforced`` modes:
-    ``paper`` (the paper's variable-length code, Elias-gamma framing), ``fixed`` (fixed-width,
-    a baseline), ``fitted`` (a code fitted to a trained team's symbols, read from
-    ``code_file``: payload bits and the penalty stay the paper's, wire bits are the fitted
-    code's packets; ``sparsecomm.channel.fitted``) or ``remapped`` (a learned code: the paper's
-    code with each element's symbols ranked by how often the team of ``code_file`` sends them,
-    the most frequent getting the shortest codeword; payload bits and the penalty, the exact
-    expected codeword bits, price the remapped lengths; ``Code.remap``). SPEC section 2."""
-    code_file: str = ""
-    """``code = fitted`` or ``remapped`` only: the JSON file of a fitted code (``sparsecomm
-    fit-code``). A fitted code's SHA-256 fingerprint is checked by every packet's CRC."""
-    noise: NoiseConfig = NoiseConfig()
-    """Noise on every link's packets (``sparsecomm.channel.noise``): bit flips, erasure, bursts,
-    delay; a packet with a flipped bit fails its CRC-32 and is lost, and the receiver uses the
-    null message or its last good one (``noise.on_drop``). Applied in training and evaluation
-    alike (``sparsecomm eval --noise.*`` evaluates a team under other noise). ours: none."""
-    ecc: str = "none"
-    """Error correction on every packet (``sparsecomm.channel.ecc``): ``none``, or
-    ``hamming74`` (each 4 bits of a packet sent as 7, correcting one flipped bit per block; the
-    redundancy, 1.75x plus padding, is counted in the wire bits). ours: ``none``."""
-    bit_cost: float = 0.0
-    """``reinforced`` mode only: reward subtracted from agent i at step t per payload bit it
-    sends (paper reward units, scaled by ``reward_scale`` like the task reward; not included in
-    the logged group reward). Neither the paper nor SPEC gives a value; ours: 0 (no cost), and
-    ``sparsecomm reproduce`` uses 0.001, the price per bit that the surrogate penalty sets at
-    lambda = 0.001 (lambda is in the same units, see ``sparsecomm.rl``)."""
-
-    def __post_init__(self):
-        if self.mode not in CHANNEL_MODES:
-            raise _bad("mode", self.mode, f"one of {CHANNEL_MODES}")
-        check_levels(self.levels, "ChannelConfig.levels")
-        if not isinstance(self.num_elements, int) or self.num_elements < 1:
-            raise _bad("num_elements", self.num_elements, "an integer >= 1")
-        if self.code not in CHANNEL_CODES:
-            raise _bad("code", self.code, f"one of {CHANNEL_CODES}")
-        if (self.code in ("fitted", "remapped")) != bool(self.code_file):
-            raise _bad(
-                "code_file",
-                self.code_file,
-                "a fitted code's JSON file exactly when code is 'fitted' or 'remapped'",
-            )
-        if self.code_file:
-            fitted = load_code(self.code_file)
-            if (fitted.levels, fitted.elements) != (self.levels, self.num_elements):
-                raise _bad(
-                    "code_file",
-                    self.code_file,
-                    f"a code for levels {self.levels} and {self.num_elements} elements (it has "
-                    f"levels {fitted.levels} and {fitted.elements} elements)",
-                )
-        if self.ecc not in ECC_NAMES:
-            raise _bad("ecc", self.ecc, f"one of {ECC_NAMES}")
-        if self.code == "permuted" and self.mode not in ("discrete", "reinforced"):
-            raise _bad("code", self.code, f"not 'permuted' in mode {self.mode!r} (no symbols)")
-        if self.code == "permuted" and self.ecc != "none":
-            raise _bad("ecc", self.ecc, "'none' with code 'permuted' (its flips corrupt symbols)")
-        if not (self.bit_cost >= 0 and self.bit_cost < float("inf")):
-            raise _bad("bit_cost", self.bit_cost, "finite and >= 0")
-
-    @property
-    def code_obj(self) -> Code | FittedCode:
-        if self.mode == "continuous":
-            return Code("float32", self.levels)
-        if self.code == "fitted":
-            return load_code(self.code_file)
-        if self.code == "permuted":
-            return Code("paper", self.levels)  # payload: the paper's count
-        if self.code == "remapped":
-            counts = np.asarray(load_code(self.code_file).symbol_counts).sum(1)
-            return Code("paper", self.levels, frequency_remap(counts))
-        return Code(self.code, self.levels)
-
-    def penalty(self, z: jax.Array) -> jax.Array:
-        """The differentiable bit cost of each element of signals ``z`` (..., C): the paper's
-        ``log2(levels z + 1)``, or for a learned (``remapped``) code the exact expected bits
-        of its codewords (``channel.expected_bits``)."""
-        return code_penalty(z, self.levels, self.code_obj)
-
-    def max_bits_per_step(self, num_agents: int) -> int:
-        """The most payload bits a team of ``num_agents`` can send in one step: every element of
-        every link at the code's longest codeword."""
-        code = self.code_obj
-        if code.name == "fitted":
-            code = Code("paper", self.levels)  # payload: the paper's count
-        per_element = code.max_paper_length if code.name == "paper" else code.fixed_width
-        return num_agents * (num_agents - 1) * self.num_elements * per_element
-
-
-@functools.lru_cache(maxsize=8)
-def _load_code(path: str, mtime_ns: int, size: int) -> FittedCode:
-    return FittedCode.from_json(Path(path).read_text())
-
-
-def load_code(path: str) -> FittedCode:
-    """The fitted code in the JSON file ``path`` (read once while the file is unchanged)."""
-    try:
-        st = os.stat(path)
-    except OSError as e:
-        raise _bad("code_file", path, f"a readable fitted-code JSON file ({e.strerror})") from None
-    try:
-        return _load_code(str(path), st.st_mtime_ns, st.st_size)
-    except ValueError as e:
-        raise _bad("code_file", path, f"a valid fitted-code JSON file ({e})") from None
-
-
-def _bad(name: str, value, allowed: str) -> ValueError:
-    return ValueError(f"ChannelConfig.{name} must be {allowed}, got {value!r}")
+# -- layout ---------------------------------------------------------------------------------
 
 
 def others(num_agents: int) -> np.ndarray:
@@ -186,96 +75,355 @@ def link_tables(num_agents: int) -> tuple[np.ndarray, np.ndarray]:
     return sender, np.where(receiver > sender, receiver - 1, receiver)
 
 
+def _at(trailing: int, rows, cols) -> tuple:
+    """An index of the two link axes followed by ``trailing`` other axes."""
+    return (Ellipsis, rows, cols, *([slice(None)] * trailing))
+
+
+def slots(by_pair: jax.Array, trailing: int = 0) -> jax.Array:
+    """(..., K, K, *e) by sender and recipient -> (..., K, K-1, *e) by sender slot (the
+    diagonal dropped); ``e`` is ``trailing`` axes, e.g. 1 for a link's C elements."""
+    k = by_pair.shape[by_pair.ndim - trailing - 1]
+    return by_pair[_at(trailing, np.arange(k)[:, None], others(k))]
+
+
+def pairs(by_slot: jax.Array, trailing: int = 0) -> jax.Array:
+    """(..., K, K-1, *e) by sender slot -> (..., K, K, *e) by sender and recipient, zero on
+    the diagonal (an agent sends nothing to itself)."""
+    axis = by_slot.ndim - trailing - 2  # the sender axis
+    k = by_slot.shape[axis]
+    shape = (*by_slot.shape[: axis + 1], k, *by_slot.shape[axis + 2 :])
+    out = jnp.zeros(shape, by_slot.dtype)
+    return out.at[_at(trailing, jnp.arange(k)[:, None], others(k))].set(by_slot)
+
+
+def inbox(by_slot: jax.Array, trailing: int = 0) -> jax.Array:
+    """(..., K, K-1, *e) by sender slot -> (..., K, K-1, *e) by recipient: row j, entry s is
+    the link from ``others(K)[j, s]`` to j."""
+    sender, slot = link_tables(by_slot.shape[by_slot.ndim - trailing - 2])
+    return by_slot[_at(trailing, sender, slot)]
+
+
 def deliver(z_hat: jax.Array) -> jax.Array:
-    """Route decoded links to their recipients: (B, K, K-1, C) by sender -> (B, K, (K-1) C),
-    receiver j's row holding the messages of the other agents in increasing order."""
-    b, k, _, c = z_hat.shape
-    sender, slot = link_tables(k)
-    return z_hat[:, sender, slot].reshape(b, k, (k - 1) * c)
+    """Route decoded links to their recipients: (..., K, K-1, C) by sender -> (..., K,
+    (K-1) C), receiver j's row holding the messages of the other agents in increasing order."""
+    k, c = z_hat.shape[-3], z_hat.shape[-1]
+    return inbox(z_hat, 1).reshape(*z_hat.shape[:-3], k, (k - 1) * c)
 
 
-def step_dither(cfg: ChannelConfig, keys: jax.Array, t, num_agents: int):
-    """The dither of every link of a batch at step ``t``: (B, K, K-1, C), ``None`` unless the
-    channel quantizes. Link i -> j of episode b uses ``dither_key(keys[b], t, i, j)``."""
-    if cfg.mode != "discrete":
+# -- routing --------------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class Routing:
+    """Which links exist, known before the episode: ``mask[i, j]`` is True when sender i may
+    send to recipient j.
+
+    Hashable, so it can be a static argument of ``jax.jit`` or a field of a frozen config. Build
+    it with :meth:`all_to_all`, :meth:`from_neighbours` or :meth:`from_mask`. Self-links do not
+    exist: the diagonal is always False. Routing that changes with the state is a traced
+    boolean array of the same layout instead (:func:`live_links` takes either).
+    """
+
+    rows: tuple[tuple[bool, ...], ...]
+    """``rows[i][j]``: link i -> j exists. K rows of K booleans, the diagonal False."""
+
+    def __post_init__(self):
+        k = len(self.rows)
+        if not 1 <= k <= MAX_AGENTS:
+            raise ValueError(f"Routing needs between 1 and {MAX_AGENTS} agents, got {k}")
+        if any(len(row) != k for row in self.rows):
+            lengths = sorted({len(row) for row in self.rows})
+            raise ValueError(
+                f"Routing.rows must be {k} rows of {k} booleans, got lengths {lengths}"
+            )
+        if any(self.rows[i][i] for i in range(k)):
+            raise ValueError(
+                "Routing.mask must have a False diagonal (an agent does not send to itself); "
+                "use mask & ~numpy.eye(K, dtype=bool)"
+            )
+
+    @property
+    def mask(self) -> np.ndarray:
+        """(K, K) bool: ``mask[i, j]`` when link sender i -> recipient j exists."""
+        return np.array(self.rows, dtype=bool).reshape(len(self.rows), len(self.rows))
+
+    @property
+    def num_agents(self) -> int:
+        """K, the number of agents."""
+        return len(self.rows)
+
+    @property
+    def num_links(self) -> int:
+        """The number of links that exist (directed)."""
+        return int(self.mask.sum())
+
+    def recipients(self, sender: int) -> list[int]:
+        """The agents ``sender`` may send to, in increasing order."""
+        return [int(j) for j in np.flatnonzero(self.mask[sender])]
+
+    def senders(self, recipient: int) -> list[int]:
+        """The agents ``recipient`` hears from, in increasing order."""
+        return [int(i) for i in np.flatnonzero(self.mask[:, recipient])]
+
+    @classmethod
+    def all_to_all(cls, num_agents: int) -> Routing:
+        """Every agent sends to every other agent (the paper's team), K (K - 1) links."""
+        if isinstance(num_agents, bool) or not isinstance(num_agents, (int, np.integer)):
+            raise ValueError(
+                f"num_agents must be an integer in [1, {MAX_AGENTS}], got {num_agents!r}"
+            )
+        if not 1 <= num_agents <= MAX_AGENTS:
+            raise ValueError(
+                f"num_agents must be an integer in [1, {MAX_AGENTS}], got {num_agents}"
+            )
+        return cls.from_mask(~np.eye(int(num_agents), dtype=bool))
+
+    @classmethod
+    def from_neighbours(cls, neighbours) -> Routing:
+        """Routing from out-neighbour lists: ``neighbours[i]`` lists the agents sender i sends to
+        (K lists, one per agent, each of distinct agents in [0, K) other than i). For an
+        undirected graph list each edge in both directions."""
+        lists = [list(row) for row in neighbours]
+        k = len(lists)
+        if not 1 <= k <= MAX_AGENTS:
+            raise ValueError(f"neighbours must be 1 to {MAX_AGENTS} lists, one per agent, got {k}")
+        mask = np.zeros((k, k), dtype=bool)
+        for i, row in enumerate(lists):
+            for j in row:
+                if isinstance(j, bool) or not isinstance(j, (int, np.integer)) or not 0 <= j < k:
+                    raise ValueError(
+                        f"neighbours[{i}] must hold agent indices in [0, {k}), got {j!r}"
+                    )
+                if j == i:
+                    raise ValueError(f"neighbours[{i}] must not hold {i} itself (no self-links)")
+                if mask[i, j]:
+                    raise ValueError(f"neighbours[{i}] lists agent {j} twice")
+                mask[i, j] = True
+        return cls.from_mask(mask)
+
+    @classmethod
+    def from_mask(cls, mask) -> Routing:
+        """Routing from a concrete (K, K) boolean array, ``mask[i, j]``: link i -> j exists."""
+        a = np.asarray(mask)
+        if a.ndim != 2 or a.shape[0] != a.shape[1] or a.dtype != np.bool_:
+            raise ValueError(
+                f"mask must be a square (K, K) boolean array, got {a.dtype} of shape {a.shape}"
+            )
+        return cls(tuple(tuple(bool(x) for x in row) for row in a))
+
+
+def routing_mask(routing: Routing | jax.Array, num_agents: int, batch=()) -> jax.Array:
+    """The routing as a bool array ``batch + (K, K)`` by sender and recipient, diagonal
+    cleared: a :class:`Routing`, or a boolean array ``(..., K, K)`` (may be traced) whose
+    leading axes broadcast to ``batch``."""
+    if isinstance(routing, Routing):
+        if routing.num_agents != num_agents:
+            raise ValueError(
+                f"routing must be for {num_agents} agents (z's agent axes), got a Routing for "
+                f"{routing.num_agents}"
+            )
+        mask = jnp.asarray(routing.mask)
+    else:
+        mask = jnp.asarray(routing)
+        if mask.dtype != jnp.bool_ or mask.ndim < 2 or mask.shape[-2:] != (num_agents,) * 2:
+            raise ValueError(
+                f"routing must be a Routing or a boolean array of shape (..., {num_agents}, "
+                f"{num_agents}), got {mask.dtype} of shape {mask.shape}"
+            )
+        mask = mask & ~jnp.eye(num_agents, dtype=bool)
+    try:
+        return jnp.broadcast_to(mask, (*batch, num_agents, num_agents))
+    except ValueError:
+        raise ValueError(
+            f"routing's leading axes {mask.shape[:-2]} must broadcast to z's batch shape {batch}"
+        ) from None
+
+
+def live_links(cfg: ChannelConfig, routing, num_agents: int, batch=()) -> jax.Array | None:
+    """The links that carry anything this step, (..., K, K-1) by sender slot: the routing's
+    (:func:`routing_mask`), and none at all on a channel that does not speak. ``None`` for
+    ``routing=None``: every link (the paper's full team; nothing to mask)."""
+    if routing is None:
         return None
-
-    def one_link(key, i, j):
-        return dither(dither_key(key, t, i, j), (cfg.num_elements,))
-
-    links = jax.vmap(jax.vmap(one_link, (None, None, 0)), (None, 0, 0))
-    senders, recv = jnp.arange(num_agents), jnp.asarray(others(num_agents))
-    return jax.vmap(lambda key: links(key, senders, recv))(keys)
+    live = slots(routing_mask(routing, num_agents, batch))
+    return live if cfg.speaks else jnp.zeros_like(live)
 
 
-def link_dither(cfg: ChannelConfig, keys: jax.Array, num_steps: int, num_agents: int):
-    """:func:`step_dither` of every step, (T, B, K, K-1, C), in one vectorised draw."""
-    if cfg.mode != "discrete":
-        return None
+# -- dither ---------------------------------------------------------------------------------
+
+
+def key_batch_shape(key: jax.Array) -> tuple[int, ...]:
+    """The batch shape of a key array, typed (``jax.random.key``) or raw uint32."""
+    if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
+        return key.shape
+    if key.dtype != jnp.uint32 or key.ndim < 1:
+        raise ValueError(f"key must be a PRNG key (typed or raw uint32), got {key.dtype}")
+    return key.shape[:-1]
+
+
+def over_links(fn, key: jax.Array, t, sender, recipient, *arrays):
+    """``fn(dither_key(key, t, i, j), *link_arrays)`` for every link i -> j of every batch
+    entry, in one flat ``vmap`` (nested ones compile ~3x slower).
+
+    ``key``: one key, or keys of batch shape ``kb``; ``t``: steps whose shape broadcasts with
+    ``kb`` into the batch shape ``B``; ``sender``, ``recipient``: integer arrays (may be traced)
+    of one link shape ``L``; each of ``arrays`` is ``(*B, *L, ...)``. Returns ``(*B, *L, ...)``.
+    """
+    kb = key_batch_shape(key)
+    t = jnp.asarray(t)
+    batch = tuple(np.broadcast_shapes(kb, t.shape))
+    sender, recipient = jnp.asarray(sender), jnp.asarray(recipient)
+    links = tuple(np.broadcast_shapes(sender.shape, recipient.shape))
+    n, m = math.prod(batch), math.prod(links)
+    i = jnp.tile(jnp.broadcast_to(sender, links).reshape(m), n)
+    j = jnp.tile(jnp.broadcast_to(recipient, links).reshape(m), n)
+    steps = jnp.repeat(jnp.broadcast_to(t, batch).reshape(n), m)
+    flat = [a.reshape(n * m, *a.shape[len(batch) + len(links) :]) for a in arrays]
+    if kb:  # one key per batch entry: gather it for each of its links
+        which = np.broadcast_to(np.arange(math.prod(kb)).reshape(kb), batch).reshape(n)
+        key = key.reshape(math.prod(kb), *key.shape[len(kb) :])[np.repeat(which, m)]
+        key_axis = 0
+    else:
+        key_axis = None
+
+    def one_link(k, tt, ii, jj, *xs):
+        return fn(dither_key(k, tt, ii, jj), *xs)
+
+    out = jax.vmap(one_link, (key_axis, 0, 0, 0, *([0] * len(flat))))(key, steps, i, j, *flat)
+    return out.reshape(*batch, *links, *out.shape[1:])
+
+
+def dither_links(key: jax.Array, t, sender, recipient, num_elements: int) -> jax.Array:
+    """The dither of links ``sender -> recipient`` at steps ``t``: ``(*B, *L, C)`` with ``B``
+    the batch of ``key`` and ``t``, ``L`` that of ``sender`` and ``recipient``
+    (:func:`over_links`); each link's C values drawn from ``dither_key(key, t, i, j)``."""
+    return over_links(lambda k: dither(k, (num_elements,)), key, t, sender, recipient)
+
+
+def _check_dither_range(num_steps: int, num_agents: int) -> None:
     if num_steps > MAX_STEPS or num_agents > MAX_AGENTS:
         raise ValueError(
             f"the dither keys support max_steps <= {MAX_STEPS} and num_agents <= {MAX_AGENTS}, got "
             f"{num_steps} and {num_agents}"
         )
-    return jax.vmap(lambda t: step_dither(cfg, keys, t, num_agents))(jnp.arange(num_steps))
+
+
+def step_dither(cfg: ChannelConfig, keys: jax.Array, t, num_agents: int):
+    """The dither of every link of a batch at step ``t``: (B, K, K-1, C) by sender slot,
+    ``None`` unless the channel quantizes. Link i -> j of episode b uses ``dither_key(keys[b],
+    t, i, j)``."""
+    if not cfg.quantizes:
+        return None
+    senders, recipients = np.arange(num_agents)[:, None], others(num_agents)
+    return dither_links(keys, t, senders, recipients, cfg.num_elements)
+
+
+def link_dither(cfg: ChannelConfig, keys: jax.Array, num_steps: int, num_agents: int):
+    """:func:`step_dither` of every step, (T, B, K, K-1, C), in one vectorised draw."""
+    if not cfg.quantizes:
+        return None
+    _check_dither_range(num_steps, num_agents)
+    senders, recipients = np.arange(num_agents)[:, None], others(num_agents)
+    steps = jnp.arange(num_steps)[:, None]
+    return dither_links(keys, steps, senders, recipients, cfg.num_elements)
+
+
+# -- the sender side ------------------------------------------------------------------------
 
 
 class Sent(NamedTuple):
-    """What one step's links cost and delivered, for a batch of B episodes."""
+    """What one step's links carried and cost. Link axes ``(..., K, K-1)`` by sender slot; a
+    deployed agent's is its own row, ``(1, K-1)``. Every field is 0 on a link not ``live``."""
 
-    z_hat: jax.Array  # (B, K, K-1, C) the reconstructions the recipients decode
-    penalty: jax.Array  # (B,) the differentiable bit penalty, summed over links and elements
-    payload: jax.Array  # (B,) payload bits sent by the team (the paper's count)
-    wire: jax.Array  # (B,) bits on the wire: every link's packet, framing and CRC included
-    link: jax.Array  # (B, K, K-1) payload bits of each link, by sender and slot
-    log_prob: jax.Array  # (B, K) log-prob of each sender's symbols ("reinforced"; else 0)
-    symbols: jax.Array  # (B, K, K-1, C) int32 symbols sent (0, the null, for "off"/"continuous")
-    link_wire: jax.Array  # (B, K, K-1) wire bits of each link's packet (0: silent)
+    symbols: jax.Array
+    """(..., K, K-1, C) int32: the symbols sent (0, the null, for ``off`` and ``continuous``)."""
+    z_hat: jax.Array
+    """(..., K, K-1, C) float32: each link's reconstruction; for a quantizing channel its value
+    is ``(m - u) / levels`` and its gradient with respect to the link's ``z`` the identity."""
+    penalty: jax.Array
+    """(..., K, K-1) float32: each link's differentiable bit penalty, summed over elements."""
+    payload_bits: jax.Array
+    """(..., K, K-1) float32: each link's payload bits (the paper's count, ``channel.payload_bits``
+    under the config's code)."""
+    wire_bits: jax.Array
+    """(..., K, K-1) float32: each link's packet on the wire, framing, CRC and error
+    correction included (0: silent). ``8 * len(encode_link(...))`` on the host."""
+    log_prob: jax.Array
+    """(..., K) float32: log-probability of each sender's symbols (``samples_symbols``; else 0)."""
+    live: jax.Array | None
+    """(..., K, K-1) bool: the links that existed (``None``: all of them)."""
 
 
-def transmit(cfg: ChannelConfig, z: jax.Array, u=None, keys=None, t=None, prev=None) -> Sent:
-    """Send every link of a batch through the channel, in any mode.
+def transmit(
+    cfg: ChannelConfig,
+    z: jax.Array,
+    u=None,
+    keys=None,
+    t=None,
+    prev=None,
+    *,
+    live=None,
+    code: Code | FittedCode | None = None,
+) -> Sent:
+    """The sender side: put every link's signal on the channel, in any mode, and count its cost.
 
-    ``z`` (B, K, K-1, C) the signals in [0, 1]; ``u`` (B, K, K-1, C) their dither
-    (:func:`link_dither`; the ``discrete`` mode needs it); ``keys`` (B,) the episodes' channel
-    keys and ``t`` the step (the ``reinforced`` mode samples its symbols with them); ``prev``
-    (B, K, K-1, C) each link's symbols at the previous step (``Sent.symbols``; a fitted code's
-    wire bits depend on them; default all nulls).
+    Args:
+      cfg: the channel.
+      z: (..., K, K-1, C) signals in [0, 1] by sender slot.
+      u: (..., K, K-1, C) their dither (:func:`link_dither`); a quantizing channel needs it.
+      keys: (...) the episodes' channel keys, and ``t`` the step: a channel that samples its
+        symbols draws them with ``dither_key(keys, t, i, j)``.
+      prev: (..., K, K-1, C) each link's symbols at the previous step (``Sent.symbols``; a
+        fitted code's packets depend on them; default all nulls).
+      live: (..., K, K-1) bool, the links that exist (:func:`live_links`); the others send
+        z = 0 (the null symbol, no gradient) and cost and deliver nothing. Default: all.
+      code: count bits in this code instead of ``cfg.code_obj`` (the plug-in layer's).
+
+    Returns:
+      :class:`Sent`.
     """
-    b, k, r, c = z.shape
-    zeros_b = jnp.zeros((b,), jnp.float32)
-    no_log_prob = jnp.zeros((b, k), jnp.float32)
-    if cfg.mode == "off":
-        z0 = jnp.zeros_like(z)
-        link = jnp.zeros((b, k, r), jnp.float32)
-        m0 = jnp.zeros(z.shape, jnp.int32)
-        return Sent(z0, zeros_b, zeros_b, zeros_b, link, no_log_prob, m0, link)
-    if cfg.mode == "continuous":
-        link = jnp.full((b, k, r), 32.0 * c)
-        total = jnp.full((b,), 32.0 * c * k * r)
-        per_link = ecc_bits(wire_bits(z, cfg.code_obj), cfg.ecc).astype(jnp.float32)
-        m0 = jnp.zeros(z.shape, jnp.int32)
-        return Sent(z, zeros_b, total, per_link.sum((-2, -1)), link, no_log_prob, m0, per_link)
-    if cfg.mode == "reinforced":
-        if keys is None or t is None:
-            raise ValueError("ChannelConfig.mode 'reinforced' needs the episodes' keys and t")
-        m, z_hat, log_prob = _sample_symbols(cfg, keys, t, z)
+    code = cfg.code_obj if code is None else code
+    lead, c = z.shape[:-1], z.shape[-1]
+    if live is not None:
+        z = jnp.where(live[..., None], z, 0.0)
+    no_log_prob = jnp.zeros(lead[:-1], jnp.float32)
+    if not cfg.speaks:
+        zeros = jnp.zeros(lead, jnp.float32)
+        return Sent(
+            jnp.zeros(z.shape, jnp.int32),
+            jnp.zeros_like(z),
+            zeros,
+            zeros,
+            zeros,
+            no_log_prob,
+            live,
+        )
+    if cfg.sends_values:
+        m, z_hat, log_prob = jnp.zeros(z.shape, jnp.int32), z, no_log_prob
+        payload = jnp.full(lead, 32.0 * c)
+        wire = ecc_bits(wire_bits(z, code), cfg.ecc).astype(jnp.float32)
+        penalty = jnp.zeros(lead, jnp.float32)
     else:
-        if u is None:
-            raise ValueError("ChannelConfig.mode 'discrete' needs the links' dither u")
-        m, z_hat = quantize_dithered(z, u, cfg.levels)
-        log_prob = no_log_prob
-    code = cfg.code_obj
-    link = payload_bits(m, code).sum(-1).astype(jnp.float32)
-    if cfg.code == "permuted":  # every link sends its C codewords, whatever they say
-        per_link = jnp.full(link.shape, float(permuted_bits(c, cfg.levels)))
-    else:
-        per_link = ecc_bits(wire_bits(m, code, prev=prev), cfg.ecc).astype(jnp.float32)
-    penalty = cfg.penalty(z).sum((-3, -2, -1))
-    wire = per_link.sum((-2, -1))
-    return Sent(
-        z_hat, penalty, link.sum((-2, -1)), wire, link, log_prob, m.astype(jnp.int32), per_link
-    )
+        if cfg.samples_symbols:
+            if keys is None or t is None:
+                raise ValueError("ChannelConfig.mode 'reinforced' needs the episodes' keys and t")
+            m, z_hat, log_prob = _sample_symbols(cfg, keys, t, z)
+        else:
+            if u is None:
+                raise ValueError("ChannelConfig.mode 'discrete' needs the links' dither u")
+            m, z_hat = quantize_dithered(z, u, cfg.levels)
+            log_prob = no_log_prob
+        payload = payload_bits(m, code).sum(-1).astype(jnp.float32)
+        if cfg.code == "permuted":  # every link sends its C codewords, whatever they say
+            wire = jnp.full(payload.shape, float(permuted_bits(c, cfg.levels)))
+        else:
+            wire = ecc_bits(wire_bits(m, code, prev=prev), cfg.ecc).astype(jnp.float32)
+        penalty = code_penalty(z, cfg.levels, code).sum(-1)
+    if live is not None:
+        z_hat = jnp.where(live[..., None], z_hat, 0.0)
+        payload, wire, penalty = (jnp.where(live, x, 0.0) for x in (payload, wire, penalty))
+    return Sent(m.astype(jnp.int32), z_hat, penalty, payload, wire, log_prob, live)
 
 
 def _sample_symbols(cfg: ChannelConfig, keys: jax.Array, t, z: jax.Array):
@@ -285,21 +433,124 @@ def _sample_symbols(cfg: ChannelConfig, keys: jax.Array, t, z: jax.Array):
     uniforms below z, drawn with the link's key ``dither_key(keys[b], t, i, j)``): full support
     on {0, ..., levels}, mean ``levels * z``. The receiver gets ``stop_gradient(m / levels)``,
     so no gradient crosses the channel; the sender learns from the log-probability of what it
-    sent (z clipped to [1e-6, 1 - 1e-6] there), (B, K), summed over its recipients and elements.
+    sent (z clipped to [1e-6, 1 - 1e-6] there), (..., K), summed over its recipients and
+    elements. ``z`` is (..., K, K-1, C): every sender's row.
     """
-    k = z.shape[1]
+    k = z.shape[-3]
     z_sample = jax.lax.stop_gradient(z)
 
-    def one_link(key, i, j, z_link):
-        u = jax.random.uniform(dither_key(key, t, i, j), (*z_link.shape, cfg.levels))
+    def one_link(key, z_link):
+        u = jax.random.uniform(key, (*z_link.shape, cfg.levels))
         return (u < z_link[..., None]).sum(-1)
 
-    per_link = jax.vmap(jax.vmap(one_link, (None, None, 0, 0)), (None, 0, 0, 0))
-    m = jax.vmap(per_link, (0, None, None, 0))(
-        keys, jnp.arange(k), jnp.asarray(others(k)), z_sample
-    )
+    senders, recipients = np.arange(k)[:, None], others(k)
+    m = over_links(one_link, keys, jnp.asarray(t), senders, recipients, z_sample)
     n, mf = float(cfg.levels), m.astype(jnp.float32)
     zc = jnp.clip(z, 1e-6, 1.0 - 1e-6)
     log_comb = gammaln(n + 1.0) - gammaln(mf + 1.0) - gammaln(n - mf + 1.0)
     log_prob = (log_comb + mf * jnp.log(zc) + (n - mf) * jnp.log1p(-zc)).sum((-2, -1))
     return m, jax.lax.stop_gradient(mf / n), log_prob
+
+
+# -- the receiver side ----------------------------------------------------------------------
+
+
+class Received(NamedTuple):
+    """What a receiver made of one step's links, in the layout it gave :func:`receive`."""
+
+    z_hat: jax.Array
+    """(..., C) float32: each link's message as the recipient's actor reads it."""
+    last: jax.Array | None
+    """(..., C) float32: each link's last good reconstruction after this step (``None`` when
+    :func:`receive` was given none)."""
+
+
+def null_message(cfg: ChannelConfig, u, like: jax.Array) -> jax.Array:
+    """What a recipient makes of the null message (every symbol 0), shaped like ``like``: on a
+    quantizing channel the null symbols rebuilt with the link's dither, ``-u / levels``;
+    otherwise 0. No gradient."""
+    if cfg.quantizes and u is not None:
+        return jax.lax.stop_gradient(-u / cfg.levels)
+    return jnp.zeros(like.shape, jnp.float32)
+
+
+def receive(
+    cfg: ChannelConfig,
+    message: jax.Array,
+    u=None,
+    *,
+    ok=None,
+    last=None,
+    on_drop: str = "null",
+    live=None,
+) -> Received:
+    """The receiver side: what each recipient reads of the links that reached it.
+
+    Args:
+      cfg: the channel.
+      message: (..., C) per link, what arrived: integer **symbols** (decoded packets), rebuilt
+        here as ``(m - u) / levels`` on a quantizing channel and ``m / levels`` on one that
+        samples its symbols; or a **float** array, already the reconstruction (a
+        ``continuous`` channel's values, or ``Sent.z_hat`` in a simulation, whose gradient it
+        keeps). A channel that does not speak delivers 0.
+      u: (..., C) each link's dither (:func:`dither_links`), for a quantizing channel.
+      ok: (...) bool, the links whose packet arrived; default all. A missing one is the null
+        message (:func:`null_message`) or, with ``on_drop = "last"``, ``last``.
+      last: (..., C) each link's last good reconstruction (zeros before the first), needed with
+        ``on_drop = "last"``.
+      on_drop: ``"null"`` or ``"last"`` (``channel.noise.ON_DROP``).
+      live: (...) bool, the links that exist: the others deliver 0. Default: all.
+
+    Returns:
+      :class:`Received`: the messages and each link's updated last good reconstruction.
+    """
+    if on_drop not in ON_DROP:
+        raise ValueError(f"on_drop must be one of {ON_DROP}, got {on_drop!r}")
+    if on_drop == "last" and ok is not None and last is None:
+        raise ValueError("receive with on_drop 'last' needs each link's last reconstruction")
+    message = jnp.asarray(message)
+    if not cfg.speaks:
+        got = jnp.zeros(message.shape, jnp.float32)
+    elif jnp.issubdtype(message.dtype, jnp.integer):  # symbols: rebuild them
+        m = message.astype(jnp.float32)
+        got = (m - u) / cfg.levels if cfg.quantizes else m / cfg.levels
+    else:
+        got = message
+    if ok is not None:
+        instead = last if on_drop == "last" else null_message(cfg, u, got)
+        got = jnp.where(ok[..., None], got, instead)
+        if last is not None:
+            last = jnp.where(ok[..., None], got, last)
+    if live is not None:
+        got = jnp.where(live[..., None], got, 0.0)
+    return Received(got, last)
+
+
+# -- one link's packet on a real network ----------------------------------------------------
+
+
+def encode_link(cfg: ChannelConfig, symbols: np.ndarray, signal: np.ndarray, prev) -> bytes:
+    """One link's packet, exactly as the channel frames it (``b""``: silence; error correction
+    applied): the symbols, or the float32 signal of a channel that sends values; nothing on a
+    channel that does not speak. ``prev``: the link's symbols at the previous step."""
+    if not cfg.speaks:
+        return b""
+    message = np.asarray(signal, np.float32) if cfg.sends_values else symbols
+    packet = encode(message, cfg.code_obj, prev=prev)
+    if packet and cfg.ecc != "none":
+        packet = ecc_encode(packet, cfg.ecc)
+    return packet
+
+
+def decode_link(cfg: ChannelConfig, packet: bytes, prev) -> np.ndarray:
+    """The message of one link's packet (symbols, or floats for a channel that sends values).
+    Raises ``channel.PacketError`` for anything that is not a packet of this channel."""
+    shape = (cfg.num_elements,)
+    if packet and cfg.ecc != "none":
+        try:
+            packet = ecc_decode(packet, cfg.ecc)
+        except ValueError as e:
+            raise PacketError(str(e)) from None
+        if not packet:  # too short to hold a protected packet; silence is sent as b""
+            raise PacketError("an ecc-protected packet too short to hold a packet")
+    return decode(packet, cfg.code_obj, shape, prev=prev)

@@ -13,14 +13,16 @@ of a :class:`NoiseConfig`, in this order:
 3. **Delay**: what comes out at step t went in at step t - ``delay``; the first ``delay`` steps
    deliver ``None`` (nothing has arrived yet, the same as a loss to the receiver).
 
-:func:`receive` is the receiver's side: it decodes what arrived and, for a loss or a packet that
-fails to decode (a flipped bit fails the CRC-32 but with probability ~2^-32), falls back to the
-null message or the link's last good message (``on_drop``), reporting ``ok=False``.
+The receiver's side is the channel's own: ``channel.decode_link`` decodes what arrived (a
+flipped bit fails the CRC-32 but with probability ~2^-32, a ``PacketError``), and
+``channel.receive`` applies the one rule for a packet that is missing (lost, late or garbled):
+the null message or the link's last good message (``on_drop``).
 
 Randomness comes from a ``numpy.random.Generator`` given to each link, so a run is reproducible
 from its seed; a clean config (:attr:`NoiseConfig.clean`) draws nothing and changes nothing. The
 in-training counterpart, :func:`lost_packets` (``jit``), draws which packets a batch of links
-loses from their sizes; ``sparsecomm.rollout`` applies it when ``ChannelConfig.noise`` is set.
+loses from their sizes; ``channel.lossy`` applies it in the rollout when ``ChannelConfig.noise``
+is set.
 """
 
 from __future__ import annotations
@@ -34,10 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from sparsecomm.channel.codes import Code, PacketError, decode
 from sparsecomm.channel.ecc import block_survival, data_bits
-from sparsecomm.channel.ecc import decode as ecc_decode
-from sparsecomm.channel.fitted import FittedCode
 
 __all__ = [
     "ON_DROP",
@@ -46,7 +45,6 @@ __all__ = [
     "flip_bits",
     "initial_bad",
     "lost_packets",
-    "receive",
 ]
 
 ON_DROP = ("null", "last")
@@ -233,43 +231,6 @@ class NoisyLink:
         leave = cfg.burst_bad_to_good if self._bad else cfg.burst_good_to_bad
         if leave > 0 and self.rng.random() < leave:
             self._bad = not self._bad
-
-
-def receive(
-    packet: bytes | None,
-    code: Code | FittedCode | str,
-    shape,
-    last: np.ndarray | None = None,
-    on_drop: str = "last",
-    ecc: str = "none",
-    **decode_kwargs,
-) -> tuple[np.ndarray, bool]:
-    """What the recipient makes of one step's arrival: ``(message, ok)``.
-
-    ``packet``: what :meth:`NoisyLink.send` delivered. Decoded with
-    :func:`~sparsecomm.channel.codes.decode` (``decode_kwargs``: its ``crc``, ``prev``);
-    ``b""`` (silence) is the null message with ``ok=True``. On ``None`` (nothing arrived) or a
-    :class:`~sparsecomm.channel.codes.PacketError`, returns ``ok=False`` and, per ``on_drop``,
-    the null message (zeros, ``decode``'s dtype) or a copy of ``last`` (the link's last good
-    message; the null message when there is none yet). A corrupted packet is accepted only if
-    its CRC-32 matches by chance (~2^-32). ``ecc``: the error correction the sender applied
-    (``sparsecomm.channel.ecc``), undone first. Raises ``ValueError`` for a bad ``on_drop`` or a
-    ``shape`` the code cannot hold (the caller's error, not the channel's).
-    """
-    if on_drop not in ON_DROP:
-        raise ValueError(f"on_drop must be one of {ON_DROP}, got {on_drop!r}")
-    if packet is not None:
-        try:
-            return decode(ecc_decode(packet, ecc), code, shape, **decode_kwargs), True
-        except PacketError:
-            pass
-    null = decode(b"", code, shape, **decode_kwargs)
-    if on_drop == "null" or last is None:
-        return null, False
-    last = np.array(last, dtype=null.dtype)
-    if last.shape != null.shape:
-        raise ValueError(f"last has shape {last.shape}, the link's messages {null.shape}")
-    return last, False
 
 
 # -- under jit: which packets a batch of links loses, for training and evaluation -------------

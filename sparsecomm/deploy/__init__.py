@@ -9,6 +9,7 @@ channel's real packets as UDP datagrams between them (issue 19, docs/deploy.md).
   batch key, one agent's step, one receiver's reconstruction, the world's step);
 * :mod:`~sparsecomm.deploy.agent`, :mod:`~sparsecomm.deploy.world`: the two processes, each a
   command (``python -m sparsecomm.deploy.agent ...``) that can run on its own host;
+* :mod:`~sparsecomm.deploy.args`: the arguments of ``sparsecomm deploy`` (``Deploy``);
 * :mod:`~sparsecomm.deploy.launcher`: ``sparsecomm deploy``, everything on one host, with
   restarts, kills on schedule, shutdown and the report;
 * :mod:`~sparsecomm.deploy.report`: the metrics and CIs of a world's episodes.

@@ -6,9 +6,10 @@ sends for step ``t`` of episode ``b``:
 1. gathers the packets its peers sent it at step ``t - 1`` (one datagram per link, silence
    included), waiting for them at most ``Deadlines.message`` from the observation's arrival;
    a packet still missing then is the null message (or the link's last one, ``on_drop``);
-2. rebuilds each message with the dither regenerated from ``dither_key(chan[b], t - 1, s, I)``;
+2. rebuilds each message with the dither regenerated from ``dither_key(chan[b], t - 1, s, I)``
+   (``core.receive``: the channel's receiver side, ``channel.receive``);
 3. steps its actor (``core.agent_step``: ``Team.act``, the action rule, ``channel.transmit``);
-4. sends each peer ``j`` its packet (``channel.encode``) through the fault layer, then the
+4. sends each peer ``j`` its packet (``channel.encode_link``) through the fault layer, then the
    world its action with what it sent and heard this step (counts, JSON).
 
 An observation of step 0, or the first observation this process sees, starts from a zero GRU
@@ -130,7 +131,7 @@ class Agent:
         from sparsecomm.deploy import core
 
         core.use_compile_cache(args.jax_cache)
-        self.args, self.core, self.jnp = args, core, jnp
+        self.args, self.core, self.channel, self.jnp = args, core, channel, jnp
         loaded = core.read_team(args.team)
         self.cfg = loaded.config.channel
         k = loaded.env.num_agents
@@ -150,11 +151,9 @@ class Agent:
         self.chan, gumbel = core.agent_draws(key, args.episodes, steps, k, loaded.env.num_actions)
         self.gumbel = np.asarray(gumbel[:, :, self.i])  # (T, N, A)
         step_fn = core.agent_step(loaded.team, self.cfg, args.greedy)
-        dither_fn = core.link_dither(self.cfg, k)
-        rebuild_fn = core.reconstruct(self.cfg, k)
+        receive_fn = core.receive(self.cfg, k, args.on_drop)
         self.step_fn = lambda params, *rest: step_fn(params, self.i, *rest)
-        self.dither_fn = lambda key, t: dither_fn(key, t, self.i)
-        self.rebuild_fn = lambda key, t, *rest: rebuild_fn(key, t, self.i, *rest)
+        self.receive_fn = lambda key, t, *rest: receive_fn(key, t, self.i, *rest)
         c = self.cfg.num_elements
         self.c, self.h = c, loaded.team.cfg.gru
         self.inbox: dict[tuple[int, int, int], list[bytes]] = {}
@@ -174,22 +173,22 @@ class Agent:
 
     def _warm_up(self) -> None:
         """Compile every jitted function before saying hello."""
-        jnp = self.jnp
         obs = np.zeros(self._obs_dim(), np.float32)
-        msgs, u = self._null_inputs(0, 0)
+        msgs = np.zeros((self.k - 1) * self.c, np.float32)
         self.step_fn(
-            self.params, self.carry, obs, msgs, self.gumbel[0, 0], 0, u, self.sent_prev
+            self.params, self.carry, obs, msgs, self.gumbel[0, 0], 0, self.chan[0], self.sent_prev
         ).action.block_until_ready()
         ok = np.zeros(self.k - 1, bool)
-        zeros = jnp.zeros((self.k - 1, self.c), jnp.float32)
-        self.rebuild_fn(self.chan[0], 0, self.sent_prev, zeros, ok, self.last, False)
+        self.receive_fn(self.chan[0], 0, self._message_buffer(), ok, self.last)
 
     def _obs_dim(self) -> int:
         return 4 + 2 * (self.k - 1)
 
-    def _null_inputs(self, episode: int, t: int):
-        msgs = np.zeros((self.k - 1) * self.c, np.float32)
-        return msgs, self.dither_fn(self.chan[episode], t)
+    def _message_buffer(self) -> np.ndarray:
+        """Room for one step's K - 1 incoming messages: the floats of a channel that sends
+        values, else symbols."""
+        dtype = np.float32 if self.cfg.sends_values else np.int32
+        return np.zeros((self.k - 1, self.c), dtype)
 
     # -- the loop ---------------------------------------------------------------------------
 
@@ -292,7 +291,7 @@ class Agent:
                     continue
                 for payload in self.inbox.pop((episode, t, s), []):
                     try:
-                        got[r] = self.core.decode_link(self.cfg, payload, self.heard_prev[r])
+                        got[r] = self.channel.decode_link(self.cfg, payload, self.heard_prev[r])
                         break
                     except ValueError:  # channel.PacketError: garbage behind a good header
                         self.counts["bad"] += 1
@@ -305,7 +304,7 @@ class Agent:
     def _act(self, obs: wire.Datagram):
         """One step: gather, rebuild, act, send. Returns a newer observation that arrived
         meanwhile, ``"bye"`` (after acting), or ``None``."""
-        jnp, d = self.jnp, self.args.deadlines
+        d = self.args.deadlines
         b, t = obs.episode, obs.step
         arrived = time.monotonic()
         if b >= self.args.episodes or t >= self.gumbel.shape[0]:
@@ -322,30 +321,29 @@ class Agent:
             return None
         newer = None
         missing = 0
-        if t == 0 or self.cfg.mode == "off":  # nothing heard yet, or nothing ever sent
+        if t == 0 or not self.cfg.speaks:  # nothing heard yet, or nothing ever sent
             msgs = np.zeros((self.k - 1) * self.c, np.float32)
         else:
             got, newer = self._gather(b, t - 1, arrived + d.message)
             ok = np.array([g is not None for g in got])
             missing = int((~ok).sum())
-            symbols = np.zeros((self.k - 1, self.c), np.int32)
-            floats = np.zeros((self.k - 1, self.c), np.float32)
+            message = self._message_buffer()
             for r, g in enumerate(got):
                 if g is not None:
-                    if self.cfg.mode == "continuous":
-                        floats[r] = g
-                    else:
-                        symbols[r] = g
+                    message[r] = g
+                    if self.cfg.sends_symbols:
                         self.heard_prev[r] = g
-            use_last = self.args.on_drop == "last"
-            msgs, heard = self.rebuild_fn(
-                self.chan[b], t - 1, symbols, floats, ok, self.last, use_last
-            )
-            self.last = jnp.where(jnp.asarray(ok)[:, None], heard, self.last)
+            msgs, self.last = self.receive_fn(self.chan[b], t - 1, message, ok, self.last)
         self._prune(b, t)
-        u = self.dither_fn(self.chan[b], t)
         out = self.step_fn(
-            self.params, self.carry, values, msgs, self.gumbel[t, b], t, u, self.sent_prev
+            self.params,
+            self.carry,
+            values,
+            msgs,
+            self.gumbel[t, b],
+            t,
+            self.chan[b],
+            self.sent_prev,
         )
         self.carry, self.t = out.carry, t
         symbols, signal = np.asarray(out.symbols), np.asarray(out.signal)
@@ -361,9 +359,9 @@ class Agent:
             "rejoined": rejoined,
         }
         for r, j in enumerate(self.recipients):
-            if self.cfg.mode == "off":
+            if not self.cfg.speaks:
                 break
-            packet = self.core.encode_link(self.cfg, symbols[r], signal[r], self.sent_prev[r])
+            packet = self.channel.encode_link(self.cfg, symbols[r], signal[r], self.sent_prev[r])
             dg = wire.pack(wire.MSG, self.i, j, b, t, packet)
             sends = inject(self.args.faults, dg, b, t, self.i, j)
             for delay, data in sends:

@@ -11,71 +11,46 @@ crosses the wire.
 
 An agent's step is :meth:`sparsecomm.agents.Team.act` on a batch of one episode in which only
 the agent's own row is real (the other rows are zeros and thrown away), followed by the
-rollout's action rule and ``channel.transmit`` of the agent's own links, so every number comes
-from the library's own functions.
+rollout's action rule and the channel's sender side (``channel.transmit``) on the agent's own
+links; its receiver side is the channel's (``channel.receive``), and its packets are
+``channel.encode_link`` / ``channel.decode_link``: this module draws no dither and rebuilds no
+message of its own, so every number comes from the library's own functions.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 from pathlib import Path
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
-from flax import serialization
 
-from sparsecomm import channel, rollout
+from sparsecomm import channel, rollout, runfolder
 from sparsecomm.channel import ChannelConfig
-from sparsecomm.configs import ILConfig, RLConfig, from_dict
 from sparsecomm.envs.navigation import NavigationEnv
-from sparsecomm.learner import make_team
 
-KINDS = {"train": RLConfig, "imitate": ILConfig}
-MODES = ("discrete", "continuous", "off")
-"""Channel modes a deployed team can use (``reinforced`` samples its symbols inside the
-channel and is not deployed)."""
 MAX_AGENTS = 255
 """Agents are numbered by one byte in the datagram header."""
 
 
-class DeployedTeam(NamedTuple):
-    """An exported team (``sparsecomm export``: ``team.json`` and ``actor.msgpack``) loaded
-    without building a learner: what an agent or world process needs, in a second."""
-
-    config: RLConfig | ILConfig
-    env: NavigationEnv
-    team: object  # sparsecomm.agents.Team
-    actor: dict  # the actor's parameters (numpy), no run axis
-
-
-def read_team(folder: str | Path, weights: bool = True) -> DeployedTeam:
-    """Load the exported team in ``folder``. ``weights=False``: the config only (the world)."""
-    folder = Path(folder)
-    meta_path = folder / "team.json"
-    if not meta_path.exists():
-        raise ValueError(f"team must be an exported team folder (team.json), got {folder}")
-    meta = json.loads(meta_path.read_text())
-    if meta.get("kind") not in KINDS:
-        raise ValueError(f"{meta_path} holds a {meta.get('kind')!r} team, not one of {list(KINDS)}")
-    config = from_dict(KINDS[meta["kind"]], meta["config"])
-    check_deployable(config)
-    env, team = make_team(config)
-    actor = None
-    if weights:
-        actor = serialization.msgpack_restore((folder / "actor.msgpack").read_bytes())
-    return DeployedTeam(config, env, team, actor)
+def read_team(folder: str | Path, weights: bool = True) -> runfolder.ExportedTeam:
+    """The exported team in ``folder`` (:func:`sparsecomm.runfolder.read_team`), refused unless
+    the runtime carries it (:func:`check_deployable`). ``weights=False``: the config only (the
+    world)."""
+    loaded = runfolder.read_team(folder, weights)
+    check_deployable(loaded.config)
+    return loaded
 
 
 def check_deployable(config) -> None:
     """Refuse a team whose channel or size the runtime does not carry."""
-    if config.channel.mode not in MODES:
+    if not config.channel.deployable:
+        deployable = [m for m in channel.CHANNEL_MODES if channel.ChannelConfig(m).deployable]
         raise ValueError(
-            f"Deploy: the team's ChannelConfig.mode must be one of {MODES}, got "
-            f"{config.channel.mode!r}"
+            f"Deploy: the team's ChannelConfig.mode must be one of {deployable} (a mode whose "
+            f"symbols need no draw but the shared dither), got {config.channel.mode!r}"
         )
     if config.env.num_agents > MAX_AGENTS:
         raise ValueError(f"Deploy: at most {MAX_AGENTS} agents, got {config.env.num_agents}")
@@ -148,12 +123,13 @@ class StepOut(NamedTuple):
 @functools.lru_cache(maxsize=16)
 def agent_step(team, cfg: ChannelConfig, greedy: bool):
     """The jitted step of an agent: ``(params, i, carry (H,), obs, msgs ((K-1) C,), gumbel
-    (A,), t, u (K-1, C), prev (K-1, C)) -> StepOut`` for agent ``i`` (a traced argument: every
-    agent runs the same compiled program); ``u``: the dither of its links at ``t``, zeros
-    unless discrete; ``prev``: its links' symbols at ``t - 1``."""
+    (A,), t, chan_key, prev (K-1, C)) -> StepOut`` for agent ``i`` (a traced argument: every
+    agent runs the same compiled program); ``chan_key``: the episode's channel key, from which
+    the dither of its links at ``t`` is drawn; ``prev``: its links' symbols at ``t - 1``. The
+    links are the channel's sender side, ``channel.transmit``, on the agent's own row."""
     k = team.num_agents
 
-    def step(params, i, carry, obs, msgs, gumbel, t, u, prev):
+    def step(params, i, carry, obs, msgs, gumbel, t, chan_key, prev):
         def one_row(x):  # a batch of one episode whose only real row is agent i's
             return jnp.zeros((1, k, *x.shape), x.dtype).at[0, i].set(x)
 
@@ -163,67 +139,43 @@ def agent_step(team, cfg: ChannelConfig, greedy: bool):
             action = jnp.argmax(logits[0, i], -1)
         else:  # as rollout: a Gumbel-max sample of the policy
             action = jnp.argmax(log_probs + gumbel, -1)
-        keys = None  # the deployable modes need no channel keys
-        sent = channel.transmit(cfg, one_row(z[0, i]), one_row(u), keys, t, one_row(prev))
+        recipients = jnp.asarray(channel.others(k))[i]
+        u = None
+        if cfg.quantizes:
+            u = channel.dither_links(chan_key, t, i, recipients, cfg.num_elements)[None]
+        sent = channel.transmit(cfg, z[0, i][None], u, prev=prev[None])
         return StepOut(
             carry[0, i],
             action.astype(jnp.int32),
-            sent.symbols[0, i],
+            sent.symbols[0],
             z[0, i],
-            sent.link[0, i],
-            sent.link_wire[0, i],
+            sent.payload_bits[0],
+            sent.wire_bits[0],
         )
 
     return jax.jit(step)
 
 
 @functools.lru_cache(maxsize=16)
-def link_dither(cfg: ChannelConfig, num_agents: int):
-    """Jitted ``(chan_key, t, sender) -> (K-1, C)``: the dither of sender's links at step
-    ``t``, each from ``channel.dither_key(chan_key, t, sender, recipient)`` (zeros unless
-    discrete)."""
-    table = jnp.asarray(channel.others(num_agents))
-    c = cfg.num_elements
+def receive(cfg: ChannelConfig, num_agents: int, on_drop: str):
+    """Jitted receiver side of an agent, the channel's own (``channel.receive``):
+    ``(chan_key, t, recipient, message (K-1, C), ok (K-1,), last (K-1, C)) -> (msgs ((K-1)
+    C,), last (K-1, C))``.
 
-    def draw(chan_key, t, sender):
-        recipients = table[sender]
-        if cfg.mode != "discrete":
-            return jnp.zeros((num_agents - 1, c), jnp.float32)
-        one = lambda j: channel.dither(channel.dither_key(chan_key, t, sender, j), (c,))  # noqa: E731
-        return jax.vmap(one)(recipients)
-
-    return jax.jit(draw)
-
-
-@functools.lru_cache(maxsize=16)
-def reconstruct(cfg: ChannelConfig, num_agents: int):
-    """Jitted receiver side ``(chan_key, t, recipient, symbols (K-1, C), values (K-1, C), ok
-    (K-1,), last (K-1, C), use_last) -> (msgs ((K-1) C,), heard (K-1, C))`` of an agent.
-
-    Link ``s`` (its senders in increasing order, ``channel.others``) sent at step ``t``:
-    ``discrete``: ``channel.dequantize`` with the dither of ``dither_key(chan_key, t, s,
-    recipient)``, regenerated here; ``continuous``: the float values. A link not ``ok`` (its
-    datagram missing at the deadline) is the null message (discrete: null symbols
-    reconstructed with this step's dither, as ``rollout`` does; else zeros) or, with
-    ``use_last``, the link's last good reconstruction ``last`` (zeros before the first)."""
+    Link ``s`` (its senders in increasing order, ``channel.others``) sent ``message[s]`` at
+    step ``t``: symbols (rebuilt with the dither of ``dither_key(chan_key, t, s, recipient)``,
+    regenerated here) or the float values of a ``continuous`` channel. A link not ``ok`` (its
+    datagram missing at the deadline) is the null message or, with ``on_drop = "last"``, the
+    link's last good reconstruction ``last`` (zeros before the first)."""
     table = jnp.asarray(channel.others(num_agents))
 
-    def rebuild(chan_key, t, recipient, symbols, values, ok, last, use_last):
-        senders = table[recipient]
-        if cfg.mode == "discrete":
-            symbols = jnp.where(ok[:, None], symbols, 0)
-
-            def one(s, m):
-                key = channel.dither_key(chan_key, t, s, recipient)
-                return channel.dequantize(key, m, cfg.levels)
-
-            got = jax.vmap(one)(senders, symbols)
-        elif cfg.mode == "continuous":
-            got = jnp.where(ok[:, None], values, 0.0)
-        else:
-            got = jnp.zeros(values.shape, jnp.float32)
-        got = jnp.where(ok[:, None] | ~use_last, got, last)
-        return got.reshape(-1), got
+    def rebuild(chan_key, t, recipient, message, ok, last):
+        u = None
+        if cfg.quantizes:
+            senders = table[recipient]
+            u = channel.dither_links(chan_key, t, senders, recipient, cfg.num_elements)
+        got = channel.receive(cfg, message, u, ok=ok, last=last, on_drop=on_drop)
+        return got.z_hat.reshape(-1), got.last
 
     return jax.jit(rebuild)
 
@@ -232,36 +184,6 @@ def reconstruct(cfg: ChannelConfig, num_agents: int):
 def world_fns(env: NavigationEnv):
     """Jitted ``reset(key)`` and ``step(key, state, actions)`` of the task (unbatched)."""
     return jax.jit(env.reset), jax.jit(env.step)
-
-
-def code_of(cfg: ChannelConfig):
-    """The code that frames each link's packet (``channel.encode``/``decode``)."""
-    return cfg.code_obj
-
-
-def encode_link(cfg: ChannelConfig, symbols: np.ndarray, signal: np.ndarray, prev) -> bytes:
-    """One link's packet, exactly as the channel frames it (``b""``: silence; ecc applied)."""
-    if cfg.mode == "off":
-        return b""
-    message = np.asarray(signal, np.float32) if cfg.mode == "continuous" else symbols
-    packet = channel.encode(message, code_of(cfg), prev=prev)
-    if packet and cfg.ecc != "none":
-        packet = channel.ecc.encode(packet, cfg.ecc)
-    return packet
-
-
-def decode_link(cfg: ChannelConfig, packet: bytes, prev) -> np.ndarray:
-    """The message of one link's packet (symbols, or floats for ``continuous``). Raises
-    ``channel.PacketError`` for anything that is not a packet of this channel."""
-    shape = (cfg.num_elements,)
-    if packet and cfg.ecc != "none":
-        try:
-            packet = channel.ecc.decode(packet, cfg.ecc)
-        except ValueError as e:
-            raise channel.PacketError(str(e)) from None
-        if not packet:  # too short to hold a protected packet; silence is sent as b""
-            raise channel.PacketError("an ecc-protected packet too short to hold a packet")
-    return channel.decode(packet, code_of(cfg), shape, prev=prev)
 
 
 def with_channel(config, **changes):

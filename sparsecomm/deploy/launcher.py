@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import json
 import shutil
 import signal
 import subprocess
@@ -305,80 +304,29 @@ def compare(episodes: list[dict], ref: dict) -> dict:
     }
 
 
-def export(config, runs, actor, index: int, folder: Path, source: Path) -> Path:
-    """Write run ``index`` as an exported team (as ``sparsecomm export`` does)."""
-    import jax
-    from flax import serialization
-
-    from sparsecomm.configs import ILConfig, to_dict
-    from sparsecomm.jsonfile import write_json
-    from sparsecomm.sharding import to_host
-
-    one = jax.tree.map(lambda x: np.asarray(x[index]), to_host(actor))
-    folder.mkdir(parents=True, exist_ok=True)
-    meta = {
-        "kind": "imitate" if isinstance(config, ILConfig) else "train",
-        "config": to_dict(config),
-        "run": runs[index]._asdict(),
-        "note": f"deployed from {source}, index {index}",
-    }
-    write_json(folder / "team.json", meta)
-    (folder / "actor.msgpack").write_bytes(serialization.to_bytes(one))
-    return folder
-
-
-def deploy(args, *, load_run, pretrained: Path, seed_offset: int) -> dict:
-    """Run ``sparsecomm deploy`` (``experiment.Deploy``); writes ``<out>/deploy.json``. On
-    Ctrl-C or SIGTERM every process is stopped and it exits with status 130.
-
-    ``experiment.deploy`` passes what it owns (this package does not import it: no cycle):
-    ``load_run`` (``experiment.load_run``), the shipped team ``pretrained`` and
-    ``seed_offset`` (``EVAL_SEED_OFFSET``: run r plays the episodes of key ``config.seed +
-    seed_offset + r``, as ``sparsecomm eval``)."""
+def deploy(args) -> dict:
+    """Run ``sparsecomm deploy`` (:class:`sparsecomm.deploy.args.Deploy`); writes
+    ``<out>/deploy.json``. On Ctrl-C or SIGTERM every process is stopped and it exits with
+    status 130."""
     try:
-        return _deploy(args, load_run, Path(pretrained), seed_offset)
+        return _deploy(args)
     except KeyboardInterrupt:
         print("deploy: interrupted; every process stopped", file=sys.stderr)
         raise SystemExit(130) from None
 
 
-def _runs_of(source: Path) -> list:
-    """The runs of a run folder or exported team, read from its metadata alone."""
-    from sparsecomm import checkpoint
-    from sparsecomm.sweep import Run, spec_from_meta
-
-    if (source / "team.json").exists():
-        return [Run(**json.loads((source / "team.json").read_text())["run"])]
-    return spec_from_meta(checkpoint.load_meta(source / "checkpoint")).runs()
-
-
-def _load(source: Path, load_run):
-    """``(config, env, team, runs, actor)`` of a run folder (``experiment.load_run``) or of an
-    exported team (read directly: a second instead of building a learner)."""
-    import jax
-    import jax.numpy as jnp
-
-    from sparsecomm.deploy.core import read_team
-
-    if (source / "team.json").exists():
-        loaded = read_team(source)
-        actor = jax.tree.map(lambda x: jnp.asarray(x)[None], loaded.actor)
-        return loaded.config, loaded.env, loaded.team, _runs_of(source), actor
-    config, trainer, runs, actor = load_run(source)
-    return config, trainer.env, trainer.team, runs, actor
-
-
-def _deploy(args, load_run, pretrained: Path, seed_offset: int) -> dict:
+def _deploy(args) -> dict:
     import jax
 
+    from sparsecomm import runfolder
     from sparsecomm.channel import NoiseConfig
     from sparsecomm.deploy.core import check_deployable, with_channel
     from sparsecomm.errors import CheckpointError
 
-    source = pretrained if args.run is None else Path(args.run)
+    source = runfolder.PRETRAINED if args.run is None else Path(args.run)
     out = args.out or (Path("runs/pretrained") if args.run is None else source) / "deploy"
     try:
-        runs = _runs_of(source)
+        runs = runfolder.runs_of(source)
     except (OSError, KeyError, TypeError, ValueError, CheckpointError) as e:
         raise RunError(f"Deploy.run must be a run folder or an exported team: {e}") from None
     for r in args.index:
@@ -386,7 +334,7 @@ def _deploy(args, load_run, pretrained: Path, seed_offset: int) -> dict:
             raise RunError(
                 f"Deploy.index must be in [0, {len(runs) - 1}] (the runs of {source}), got {r}"
             )
-    config, env, team_net, runs, actor = _load(source, load_run)
+    config, env, team_net, runs, actor = runfolder.load_actors(source)
     try:
         check_deployable(config)
     except ValueError as e:
@@ -395,8 +343,9 @@ def _deploy(args, load_run, pretrained: Path, seed_offset: int) -> dict:
     faults, deadlines = args.faults(), args.deadlines()
     results = []
     for r in args.index:
-        seed = config.seed + seed_offset + r
-        team = export(config, runs, actor, r, out / f"team_{r}", source)
+        seed = config.seed + runfolder.EVAL_SEED_OFFSET + r
+        note = f"deployed from {source}, index {r}"
+        team = runfolder.write_team(out / f"team_{r}", config, runs, actor, r, note)
         print(f"deploy: run {r} ({k} agent processes + world), {args.episodes} episodes")
         simulated = None
         if args.reference:  # compiled and played in a thread while the processes start up

@@ -1,0 +1,193 @@
+"""How a team talks: :class:`ChannelConfig`, and the capabilities of its mode.
+
+Callers outside ``channel/`` ask a config what its mode does (``speaks``, ``quantizes``,
+``samples_symbols``, ``sends_symbols``, ``sends_values``, ``has_penalty``, ``deployable``)
+instead of comparing its ``mode`` string, so a new mode is written in ``channel/`` alone.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from sparsecomm.channel.codes import CODE_NAMES, Code, frequency_remap
+from sparsecomm.channel.ecc import ECC_NAMES
+from sparsecomm.channel.fitted import FittedCode
+from sparsecomm.channel.noise import NoiseConfig
+from sparsecomm.channel.penalty import code_penalty
+from sparsecomm.channel.quantizer import check_levels
+
+CHANNEL_MODES = ("discrete", "continuous", "off", "reinforced")
+CHANNEL_CODES = (*CODE_NAMES[:2], "fitted", "remapped", "permuted")
+
+
+@dataclasses.dataclass(frozen=True)
+class ChannelConfig:
+    """The message channel between agents (docs/spec.md sections 1-3)."""
+
+    mode: str = "discrete"
+    """``discrete``: dithered quantization, the paper's method. ``continuous``: real-valued
+    messages sent as float32 (a baseline, 32 bits per element). ``off``: no communication
+    (messages are zeros, 0 bits; a baseline). ``reinforced``: reinforced communication learning
+    (RCL, a baseline): each element's symbol is sampled as an action, m ~ Binomial(levels, z),
+    the receiver gets m / levels with no gradient through the channel, and the senders learn by
+    policy gradient on the log-probability of the symbols sent, with ``bit_cost`` per bit."""
+    levels: int = 15
+    """|M|, symbols per element are {0, ..., levels}. SPEC section 1."""
+    num_elements: int = 10
+    """C, elements of the signal z each agent sends to each recipient per step. Paper: 10."""
+    code: str = "paper"
+    """Code used to count payload bits (and frame them on the wire) for the ``discrete`` and
+    ``reinforced`` modes:
+    ``paper`` (the paper's variable-length code, Elias-gamma framing), ``fixed`` (fixed-width,
+    a baseline), ``fitted`` (a code fitted to a trained team's symbols, read from
+    ``code_file``: payload bits and the penalty stay the paper's, wire bits are the fitted
+    code's packets; ``sparsecomm.channel.fitted``) or ``remapped`` (a learned code: the paper's
+    code with each element's symbols ranked by how often the team of ``code_file`` sends them,
+    the most frequent getting the shortest codeword; payload bits and the penalty, the exact
+    expected codeword bits, price the remapped lengths; ``Code.remap``). SPEC section 2."""
+    code_file: str = ""
+    """``code = fitted`` or ``remapped`` only: the JSON file of a fitted code (``sparsecomm
+    fit-code``). A fitted code's SHA-256 fingerprint is checked by every packet's CRC."""
+    noise: NoiseConfig = NoiseConfig()
+    """Noise on every link's packets (``sparsecomm.channel.noise``): bit flips, erasure, bursts,
+    delay; a packet with a flipped bit fails its CRC-32 and is lost, and the receiver uses the
+    null message or its last good one (``noise.on_drop``). Applied in training and evaluation
+    alike (``sparsecomm eval --noise.*`` evaluates a team under other noise). ours: none."""
+    ecc: str = "none"
+    """Error correction on every packet (``sparsecomm.channel.ecc``): ``none``, or
+    ``hamming74`` (each 4 bits of a packet sent as 7, correcting one flipped bit per block; the
+    redundancy, 1.75x plus padding, is counted in the wire bits). ours: ``none``."""
+    bit_cost: float = 0.0
+    """``reinforced`` mode only: reward subtracted from agent i at step t per payload bit it
+    sends (paper reward units, scaled by ``reward_scale`` like the task reward; not included in
+    the logged group reward). Neither the paper nor SPEC gives a value; ours: 0 (no cost), and
+    ``sparsecomm reproduce`` uses 0.001, the price per bit that the surrogate penalty sets at
+    lambda = 0.001 (lambda is in the same units, see ``sparsecomm.rl``)."""
+
+    def __post_init__(self):
+        if self.mode not in CHANNEL_MODES:
+            raise _bad("mode", self.mode, f"one of {CHANNEL_MODES}")
+        check_levels(self.levels, "ChannelConfig.levels")
+        if not isinstance(self.num_elements, int) or self.num_elements < 1:
+            raise _bad("num_elements", self.num_elements, "an integer >= 1")
+        if self.code not in CHANNEL_CODES:
+            raise _bad("code", self.code, f"one of {CHANNEL_CODES}")
+        if (self.code in ("fitted", "remapped")) != bool(self.code_file):
+            raise _bad(
+                "code_file",
+                self.code_file,
+                "a fitted code's JSON file exactly when code is 'fitted' or 'remapped'",
+            )
+        if self.code_file:
+            fitted = load_code(self.code_file)
+            if (fitted.levels, fitted.elements) != (self.levels, self.num_elements):
+                raise _bad(
+                    "code_file",
+                    self.code_file,
+                    f"a code for levels {self.levels} and {self.num_elements} elements (it has "
+                    f"levels {fitted.levels} and {fitted.elements} elements)",
+                )
+        if self.ecc not in ECC_NAMES:
+            raise _bad("ecc", self.ecc, f"one of {ECC_NAMES}")
+        if self.code == "permuted" and self.mode not in ("discrete", "reinforced"):
+            raise _bad("code", self.code, f"not 'permuted' in mode {self.mode!r} (no symbols)")
+        if self.code == "permuted" and self.ecc != "none":
+            raise _bad("ecc", self.ecc, "'none' with code 'permuted' (its flips corrupt symbols)")
+        if not (self.bit_cost >= 0 and self.bit_cost < float("inf")):
+            raise _bad("bit_cost", self.bit_cost, "finite and >= 0")
+
+    # -- what the mode does: callers outside channel/ ask these, never compare ``mode`` --------
+
+    @property
+    def speaks(self) -> bool:
+        """Links carry anything at all (every mode but ``off``)."""
+        return self.mode != "off"
+
+    @property
+    def quantizes(self) -> bool:
+        """Signals are quantized with a per-link dither that sender and receiver both draw from
+        the shared key (``discrete``, the paper's)."""
+        return self.mode == "discrete"
+
+    @property
+    def samples_symbols(self) -> bool:
+        """Symbols are sampled as actions and learned by policy gradient, with no gradient
+        across the channel (``reinforced``, RCL)."""
+        return self.mode == "reinforced"
+
+    @property
+    def sends_symbols(self) -> bool:
+        """Packets carry integer symbols in ``{0, ..., levels}`` (``discrete``, ``reinforced``)."""
+        return self.quantizes or self.samples_symbols
+
+    @property
+    def sends_values(self) -> bool:
+        """Packets carry the real-valued signal as float32 (``continuous``)."""
+        return self.mode == "continuous"
+
+    @property
+    def has_penalty(self) -> bool:
+        """The channel has a differentiable bit penalty, so a lambda or a bit budget applies
+        (``discrete``)."""
+        return self.quantizes
+
+    @property
+    def deployable(self) -> bool:
+        """A deployed agent can run it alone: its symbols need no draw but the dither
+        (``discrete``, ``continuous``, ``off``; ``reinforced`` samples inside the channel)."""
+        return not self.samples_symbols
+
+    @property
+    def code_obj(self) -> Code | FittedCode:
+        if self.mode == "continuous":
+            return Code("float32", self.levels)
+        if self.code == "fitted":
+            return load_code(self.code_file)
+        if self.code == "permuted":
+            return Code("paper", self.levels)  # payload: the paper's count
+        if self.code == "remapped":
+            counts = np.asarray(load_code(self.code_file).symbol_counts).sum(1)
+            return Code("paper", self.levels, frequency_remap(counts))
+        return Code(self.code, self.levels)
+
+    def penalty(self, z: jax.Array) -> jax.Array:
+        """The differentiable bit cost of each element of signals ``z`` (..., C): the paper's
+        ``log2(levels z + 1)``, or for a learned (``remapped``) code the exact expected bits
+        of its codewords (``channel.expected_bits``)."""
+        return code_penalty(z, self.levels, self.code_obj)
+
+    def max_bits_per_step(self, num_agents: int) -> int:
+        """The most payload bits a team of ``num_agents`` can send in one step: every element of
+        every link at the code's longest codeword."""
+        code = self.code_obj
+        if code.name == "fitted":
+            code = Code("paper", self.levels)  # payload: the paper's count
+        per_element = code.max_paper_length if code.name == "paper" else code.fixed_width
+        return num_agents * (num_agents - 1) * self.num_elements * per_element
+
+
+@functools.lru_cache(maxsize=8)
+def _load_code(path: str, mtime_ns: int, size: int) -> FittedCode:
+    return FittedCode.from_json(Path(path).read_text())
+
+
+def load_code(path: str) -> FittedCode:
+    """The fitted code in the JSON file ``path`` (read once while the file is unchanged)."""
+    try:
+        st = os.stat(path)
+    except OSError as e:
+        raise _bad("code_file", path, f"a readable fitted-code JSON file ({e.strerror})") from None
+    try:
+        return _load_code(str(path), st.st_mtime_ns, st.st_size)
+    except ValueError as e:
+        raise _bad("code_file", path, f"a valid fitted-code JSON file ({e})") from None
+
+
+def _bad(name: str, value, allowed: str) -> ValueError:
+    return ValueError(f"ChannelConfig.{name} must be {allowed}, got {value!r}")

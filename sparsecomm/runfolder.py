@@ -1,0 +1,235 @@
+"""Run folders and exported teams: the one module that reads them, and writes exported teams.
+
+A **run folder** is the ``--out`` of ``sparsecomm train`` or ``imitate``. Its ``checkpoint/``
+(:data:`CHECKPOINT`, :mod:`sparsecomm.checkpoint`) holds the batched state of every run of the
+sweep and the metadata: the kind (:data:`KINDS`), the config and the sweep's axes, from which
+:func:`runs_of` rebuilds the list of runs. :func:`sparsecomm.sweep.run_sweep` writes it, beside
+``metrics.csv`` and ``tensorboard/``; :func:`sparsecomm.experiment.train` then writes
+:data:`RESULTS`, ``curves.png`` and ``team.gif``.
+
+An **exported team** (``sparsecomm export``; every run ``sparsecomm deploy`` plays) is one run's
+actor, weights only: :data:`TEAM` (JSON: the kind, the config, the run, a note) and
+:data:`ACTOR` (the actor's parameters as msgpack, no run axis). :func:`write_team` alone writes
+it; :func:`read_team` reads it without building a learner.
+
+Everything that takes a folder takes either. Nothing here unpickles: msgpack and JSON only.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import serialization
+
+from sparsecomm import checkpoint
+from sparsecomm.configs import ILConfig, RLConfig, from_dict, to_dict
+from sparsecomm.envs.navigation import NavigationEnv
+from sparsecomm.errors import RunError
+from sparsecomm.imitation import make_imitate, oracle_expert, team_expert
+from sparsecomm.jsonfile import write_json
+from sparsecomm.learner import Learner, make_team
+from sparsecomm.rl import make_train
+from sparsecomm.rollout import Expert
+from sparsecomm.sharding import to_host
+from sparsecomm.sweep import Run, run_arrays, spec_from_meta
+
+CHECKPOINT = "checkpoint"
+"""A run folder's checkpoint folder."""
+RESULTS = "results.json"
+"""A run folder's final evaluation (``sparsecomm.experiment.evaluate_runs``)."""
+TEAM, ACTOR = "team.json", "actor.msgpack"
+"""An exported team's two files: its metadata and its actor's parameters."""
+
+KINDS = {"train": RLConfig, "imitate": ILConfig}
+"""The kinds of run a folder records, and the config each is read back as."""
+
+PRETRAINED = Path(__file__).parent / "pretrained" / "sparse_team"
+"""The trained sparse team shipped with the package, an exported team (docs/budget.md says how
+it was trained)."""
+
+EVAL_SEED_OFFSET = 1_000_003
+"""Evaluation episodes of run ``r`` use seed ``config.seed + EVAL_SEED_OFFSET + r``: disjoint
+from training (``sparsecomm eval`` and ``sparsecomm deploy`` play the same ones)."""
+
+
+def kind_of(config: RLConfig | ILConfig) -> str:
+    """The kind (a key of :data:`KINDS`) a run of ``config`` is recorded as."""
+    for kind, cls in KINDS.items():
+        if type(config) is cls:
+            return kind
+    raise TypeError(f"a run's config must be one of {list(KINDS.values())}, got {type(config)}")
+
+
+def at_least(args, **lowest) -> None:
+    """Refuse an integer field of ``args`` below its lowest allowed value, naming the field."""
+    for name, low in lowest.items():
+        value = getattr(args, name)
+        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+            raise ValueError(
+                f"{type(args).__name__}.{name} must be an integer >= {low}, got {value!r}"
+            )
+
+
+def check_index(args, runs: list) -> None:
+    """Refuse ``args.index`` outside the runs of the folder ``args.run``, naming the field."""
+    if not 0 <= args.index < len(runs):
+        raise RunError(
+            f"{type(args).__name__}.index must be in [0, {len(runs) - 1}] (the runs of "
+            f"{args.run}), got {args.index}"
+        )
+
+
+def load_expert(config: ILConfig) -> Expert:
+    """The expert ``config`` names: the oracle, or run ``expert_index`` of the RL run folder (or
+    exported team) ``expert_checkpoint``, acting greedily over its own channel."""
+    if config.expert == "oracle":
+        return oracle_expert(NavigationEnv(config.env))
+    rl_config, trainer, runs, actor = load_run(Path(config.expert_checkpoint))
+    if rl_config.env != config.env:
+        raise RunError(
+            "ILConfig.expert_checkpoint was trained on a different task (env config): "
+            f"{rl_config.env} vs {config.env}"
+        )
+    if not 0 <= config.expert_index < len(runs):
+        raise RunError(
+            f"ILConfig.expert_index must be in [0, {len(runs) - 1}], got {config.expert_index}"
+        )
+    params = jax.tree.map(lambda x: x[config.expert_index], actor)
+    return team_expert(trainer.team, rl_config.channel, params)
+
+
+def learner_for(config: RLConfig | ILConfig) -> Learner:
+    """The learner of a config: RL, or imitation of the expert the config names."""
+    if isinstance(config, ILConfig):
+        return make_imitate(config, load_expert(config))
+    return make_train(config)
+
+
+def _config(meta: dict, where: Path) -> RLConfig | ILConfig:
+    """The config recorded in a run folder's or exported team's metadata."""
+    kind = meta.get("kind")
+    if kind not in KINDS:
+        raise ValueError(f"{where} holds a {kind!r} run, not one of {list(KINDS)}")
+    return from_dict(KINDS[kind], meta["config"])
+
+
+def is_team(folder: str | Path) -> bool:
+    """``folder`` is an exported team (else a run folder, or nothing)."""
+    return (Path(folder) / TEAM).exists()
+
+
+def _team_meta(folder: Path) -> dict:
+    if not is_team(folder):
+        raise ValueError(f"team must be an exported team folder ({TEAM}), got {folder}")
+    return json.loads((folder / TEAM).read_text())
+
+
+def runs_of(folder: str | Path) -> list[Run]:
+    """The runs of a run folder or exported team, in the order of the run axis, read from its
+    metadata alone."""
+    folder = Path(folder)
+    if is_team(folder):
+        return [Run(**_team_meta(folder)["run"])]
+    return spec_from_meta(checkpoint.load_meta(folder / CHECKPOINT)).runs()
+
+
+class ExportedTeam(NamedTuple):
+    """An exported team loaded without building a learner: what an agent or world process
+    needs, in a second."""
+
+    config: RLConfig | ILConfig
+    env: NavigationEnv
+    team: object  # sparsecomm.agents.Team
+    actor: dict | None  # the actor's parameters (numpy), no run axis; None: not read
+    run: Run
+
+
+def write_team(folder: str | Path, config, runs: list[Run], actor, index: int, note: str = ""):
+    """Write run ``index`` of a sweep (``actor``: its actors' parameters, leading run axis) as
+    an exported team in ``folder``; returns the folder."""
+    folder = Path(folder)
+    one = jax.tree.map(lambda x: np.asarray(x[index]), to_host(actor))
+    folder.mkdir(parents=True, exist_ok=True)
+    meta = {"kind": kind_of(config), "config": to_dict(config), "run": runs[index]._asdict()}
+    write_json(folder / TEAM, {**meta, "note": note})
+    (folder / ACTOR).write_bytes(serialization.to_bytes(one))
+    return folder
+
+
+def read_team(folder: str | Path, weights: bool = True) -> ExportedTeam:
+    """The exported team in ``folder``. ``weights=False``: its config only (``actor`` None)."""
+    folder = Path(folder)
+    meta = _team_meta(folder)
+    config = _config(meta, folder / TEAM)
+    env, team = make_team(config)
+    actor = None
+    if weights:
+        actor = serialization.msgpack_restore((folder / ACTOR).read_bytes())
+    return ExportedTeam(config, env, team, actor, Run(**meta["run"]))
+
+
+class Actors(NamedTuple):
+    """The teams of a folder, ready to play: what :func:`load_actors` returns."""
+
+    config: RLConfig | ILConfig
+    env: NavigationEnv
+    team: object  # sparsecomm.agents.Team
+    runs: list[Run]
+    actor: dict  # the actors' parameters, leading run axis
+
+
+def load_actors(folder: str | Path) -> Actors:
+    """The teams of a run folder or exported team, the actors' parameters with a leading run
+    axis; an exported team is read without building a learner (a second instead of several)."""
+    folder = Path(folder)
+    if is_team(folder):
+        loaded = read_team(folder)
+        actor = jax.tree.map(lambda x: jnp.asarray(x)[None], loaded.actor)
+        return Actors(loaded.config, loaded.env, loaded.team, [loaded.run], actor)
+    config, trainer, runs, actor = load_run(folder)
+    return Actors(config, trainer.env, trainer.team, runs, actor)
+
+
+def load_run(folder: str | Path):
+    """A run folder (or an exported team) as ``(config, learner, runs, actor_params)``, the
+    actors' parameters with a leading run axis."""
+    config, trainer, runs, params = _load(folder)
+    return config, trainer, runs, params["actor"]
+
+
+def load_params(folder: str | Path, index: int = 0) -> dict:
+    """The parameters of run ``index`` of a run folder (``{"actor", "critic"}``; an exported
+    team has its actor only), without the run axis."""
+    _, _, runs, params = _load(folder)
+    if not 0 <= index < len(runs):
+        raise RunError(
+            f"init_index must be in [0, {len(runs) - 1}] (the runs of {folder}), got {index}"
+        )
+    return jax.tree.map(lambda x: np.asarray(x[index]), to_host(params))
+
+
+def _load(folder: str | Path):
+    """``(config, learner, runs, params)`` of a run folder or an exported team (its params: the
+    actor only), every parameter with a leading run axis."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise RunError(f"no run folder at {folder}")
+    if is_team(folder):  # one run, weights only
+        loaded = read_team(folder)
+        trainer = learner_for(loaded.config)
+        template = trainer.team.init(jax.random.key(0))["actor"]
+        actor = serialization.from_state_dict(template, loaded.actor)
+        actor = jax.tree.map(lambda x: jnp.asarray(x)[None], actor)
+        return loaded.config, trainer, [loaded.run], {"actor": actor}
+    meta = checkpoint.load_meta(folder / CHECKPOINT)
+    config = _config(meta, folder)
+    trainer = learner_for(config)
+    runs = spec_from_meta(meta).runs()
+    template = jax.vmap(trainer.init)(*run_arrays(config, runs))
+    state = checkpoint.load(folder / CHECKPOINT, template)
+    return config, trainer, runs, state.params
