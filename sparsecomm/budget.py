@@ -60,63 +60,59 @@ class BudgetConfig:
     """The bit budget and its controller. ``bits = None`` keeps the paper's fixed lambda."""
 
     bits: float | None = None
-    """Payload bits per step for the whole team (the paper's count, summed over all links) that
-    training must meet; ``None``: no budget, the penalty weight is the fixed lambda (paper).
-    ``sparsecomm train --budgets`` sweeps it. ours: ``None`` (the paper's behaviour)."""
+    """Payload bits per step (>= 0) that training must meet, for the whole team (the paper's
+    count, summed over all links) or per link with ``per_link``; ``None``: no budget, the penalty
+    weight is the fixed lambda. ``sparsecomm train --budgets`` sweeps it. ours: ``None`` (the
+    paper's behaviour)."""
     weight_init: float = 0.01
-    """Penalty weight (lambda units: the price of one bit) when the controller engages, unless the
-    run's lambda is larger. ours: 0.01, the largest paper lambda (it costs a trained team ~16% of
-    its bits and no success, docs/reproduce.md)."""
+    """Penalty weight (lambda units: the price of one bit; > 0) when the controller engages,
+    unless the run's lambda is larger. ours: 0.01, the largest paper lambda (docs/budget.md, "How
+    the defaults were chosen")."""
     weight_min: float = 1e-5
-    """Lower bound of the weight. ours: small enough to be no pressure at all (lambda 0.001 moves
-    a trained team's bits by ~1%)."""
+    """Lower bound of the weight (lambda units, > 0). ours: small enough to be no pressure at all
+    (docs/budget.md, "How the defaults were chosen")."""
     weight_max: float = 1e3
-    """Upper bound of the weight. ours: far above any weight a team needs (the delayed-penalty runs
-    reached 20 bits per step at lambda 3)."""
+    """Upper bound of the weight (lambda units, >= ``weight_min``). ours: far above any weight a
+    team needs (docs/budget.md, "How the defaults were chosen")."""
     dual_lr: float = 0.03
-    """Step of ``log(weight)`` per update at a relative excess of 100% (the excess
-    ``(bits - target) / target`` is clipped to [-1, 1]). ours: the weight can change 10x in 77
-    updates. 0.1 (10x in 23) overshot on the CPU preset: the team's bits answer a new price with
-    a lag of tens of updates, the price rose 20x past the one that met the target, and success
-    collapsed (docs/budget.md)."""
+    """Step of ``log(weight)`` per update at a relative excess of 100% (> 0; the excess
+    ``(bits - target) / target`` is clipped to [-1, 1]), so the weight can change 10x in 77
+    updates. ours (docs/budget.md, controller v2)."""
     relief_lr: float | None = 0.3
-    """Step of ``log(weight)`` per update while the team sends less than its target or its
+    """Step of ``log(weight)`` per update (> 0) while the team sends less than its target or its
     success is below ``hold_success`` of its best (then the price falls at this rate whatever
-    the bits): how fast the price gives way once bits fall off the cliff. ``None``: ``dual_lr``
-    (a symmetric step, controller v2). ours: 0.3 (10x in 8 updates): on the CPU preset it
-    turned v2's collapses into short dips that the team recovers from, and budget 16 went from
-    0.781 to 0.989 success at 16.0 bits per step (docs/budget.md, controller v5)."""
+    the bits): how fast the price gives way once bits fall off the cliff; 0.3 is 10x in 8
+    updates. ``None``: ``dual_lr`` (a symmetric step). ours: 0.3 (docs/budget.md, controller
+    v5)."""
     relief_floor: float | None = None
-    """Bound of the relief: while the team's success is down, the price falls no lower than this
-    fraction of the last price at which its success held, and that bound itself falls at
-    ``dual_lr`` per update while success stays down (so no link is held silent for good).
-    ``None``: unbounded (controller v5). ours: ``None`` for RL (its dips are short); imitation's
-    default is set in ``ILConfig.budget`` (docs/budget.md, controller v6)."""
+    """Bound of the relief, in (0, 1): while the team's success is down, the price falls no lower
+    than this fraction of the last price at which its success held, and that bound itself falls
+    at ``dual_lr`` per update while success stays down (so no link is held silent for good).
+    ``None``: unbounded. ours: ``None`` for RL; imitation's default is set in ``ILConfig.budget``
+    (docs/budget.md, controller v6)."""
     engage_success: float = 0.5
-    """The target starts to fall when the moving average of the batch success rate first reaches
-    this. ours."""
+    """The target starts to fall when the moving average of the batch success rate (in [0, 1])
+    first reaches this. ours."""
     halving_updates: float = 50.0
-    """Once engaged, the target halves every this many updates until it reaches ``bits``. ours: an
-    imitation probe (issue 14) that lowered the target 10x over 500 updates kept success; one that
-    jumped to the budget at once silenced the channel for good."""
+    """Once engaged, the target halves every this many updates (> 0) until it reaches ``bits``.
+    ours (docs/budget.md, "How the defaults were chosen")."""
     hold_success: float = 0.8
-    """The target falls while the moving average of success is at least this fraction of its best
-    so far, and rises (at the same rate, up to where it started) while it is below. ours."""
+    """The target falls while the moving average of success is at least this fraction (in
+    [0, 1]) of its best so far, and rises (at the same rate, up to where it started) while it is
+    below. ours."""
     success_ema: float = 0.1
-    """Weight of the newest update in the moving average of the success rate. ours."""
+    """Weight, in (0, 1], of the newest update in the moving average of the success rate. ours."""
     decoupled: bool = False
     """Apply the bit penalty as its own plain gradient step on the message head after the
     optimiser's step (like AdamW's weight decay), ``head -= decoupled_lr * weight *
-    grad_head(mean penalty)``, instead of inside the loss that Adam normalises. ours: off
-    (docs/budget.md compares them). Inside the loss, Adam rescales the penalty's gradient on the
-    head to full steps once it outweighs the task's, so a price just past the balance silences a
-    team within tens of updates; outside, the step is proportional to the price."""
+    grad_head(mean penalty)``, instead of inside the loss that Adam normalises: inside the loss,
+    Adam rescales the penalty's gradient on the head to full steps once it outweighs the task's;
+    outside, the step is proportional to the price. ours: off (docs/budget.md compares them)."""
     decoupled_lr: float = 0.02
-    """Step size of the decoupled penalty step (per unit of weight). ours: at the engaging weight
-    0.01 a head bias whose element is near silence (penalty gradient ~5 per unit of
+    """Step size of the decoupled penalty step (> 0, per unit of weight). ours: at the engaging
+    weight 0.01 a head bias whose element is near silence (penalty gradient ~5 per unit of
     pre-activation) moves by ~1e-3 per update, the size of an Adam step at lr 1e-3, so the task
-    and the price start out even. 1.0 silenced every team at the engaging weight within ~75
-    updates on the CPU preset (docs/budget.md)."""
+    and the price start out even (docs/budget.md, controller v4)."""
 
     per_link: bool = False
     """Count ``bits`` (and the target, and the bits the controller measures) per link that
