@@ -429,35 +429,130 @@ def render_frames(
     """
     s = _stack_states(states_sequence)
     num_frames, k = s["pos"].shape[:2]
-    if link_bits is not None:
-        link_bits = np.asarray(link_bits, dtype=np.float64)
-        if link_bits.ndim != 3 or link_bits.shape[1:] != (k, k):
-            raise ValueError(f"link_bits must have shape (T, {k}, {k}), got {link_bits.shape}")
-        if link_bits.shape[0] == num_frames - 1:
-            link_bits = np.concatenate([link_bits, np.zeros((1, k, k))])
-        if link_bits.shape[0] != num_frames:
-            raise ValueError(f"link_bits has {link_bits.shape[0]} steps for {num_frames} states")
-        link_bits = link_bits * (1 - np.eye(k))[None]
+    link_bits = _episode_link_bits(link_bits, num_frames, k)
     layout = frame_layout(config, size, fit_view_limit(s["pos"], s["goals"], config))
-    size, u = layout.size, layout.unit
-    head_font = _font(0.5 * layout.header)
-    caption_font = _font(0.26 * layout.footer)
-    legend_font = _font(0.2 * layout.footer)
-    label_font = _font(max(17.0 * u, 8))
-    r_agent = layout.agent_radius
-    agent_font = _font(1.15 * r_agent) if r_agent >= 6 else None
-    r_goal = config.success_radius * layout.scale
-    offset = layout.link_offset
-    clearance = offset + 0.5 * layout.max_link_width + 1.0 * u
-    trim_from, trim_to = r_agent + 2.0 * u, r_agent + 3.0 * u
-    silent_width = max(1, int(round(1.5 * u)))
-    label_pad = max(1.0, 3.0 * u)
-    digits = label_font.getbbox("0123456789", anchor="mm")
-    label_h = digits[3] - digits[1] + 2 * label_pad
-    label_w: dict[str, float] = {}
-    max_bits = max(1e-12, float(link_bits.max())) if link_bits is not None else 1.0
+    pens = _Pens.of(layout, config, link_bits)
+    background = _background(pens, config, k, with_links=link_bits is not None)
+    frames = []
+    cum_bits = 0.0
+    for t in range(num_frames):
+        bits = None if link_bits is None else link_bits[t]
+        cum_bits += 0.0 if bits is None else float(bits.sum())
+        frames.append(_draw_frame(background.copy(), pens, config, s, t, bits, cum_bits))
+    return frames
 
-    # Static background: margin band, arena, header and footer bars, legend.
+
+def _draw_frame(img, pens: _Pens, config: NavConfig, s: dict, t: int, bits, cum_bits) -> np.ndarray:
+    """Frame ``t`` drawn on ``img`` (a copy of the background): goals, links, agents, the links'
+    labels, header and caption. ``bits``: the step's (K, K) link bits, or None; ``cum_bits``:
+    the team's bits up to and including this step."""
+    draw = ImageDraw.Draw(img)
+    layout = pens.layout
+    pos = layout.to_px(s["pos"][t])
+    goals = layout.to_px(s["goals"][t])
+    for i, goal in enumerate(goals):
+        _goal_marker(draw, goal, _agent_colour(i), pens.r_goal, layout.unit)
+    labels = [] if bits is None else _draw_links(draw, pens, pos, bits)
+    for i, xy in enumerate(pos):
+        _agent_disc(draw, xy, _agent_colour(i), pens.r_agent, i, pens.agent_font, layout.unit)
+    if labels:
+        _draw_labels(draw, pens, pos, goals, labels)
+    _draw_header(draw, pens, config, s, t)
+    caption = f"step {int(s['time'][t])}"
+    if bits is not None:
+        caption += (
+            f"   team bits this step: {format_bits(float(bits.sum()))}"
+            f"   episode total: {format_bits(cum_bits)}"
+        )
+    _draw_caption(draw, pens, caption)
+    return np.asarray(img, dtype=np.uint8)
+
+
+def _agent_colour(i: int) -> tuple[int, int, int]:
+    return AGENT_COLOURS[i % len(AGENT_COLOURS)]
+
+
+def _episode_link_bits(link_bits, num_frames: int, k: int) -> np.ndarray | None:
+    """``render_frames``'s ``link_bits`` checked, padded to ``num_frames`` steps and with the
+    diagonal zeroed (None stays None)."""
+    if link_bits is None:
+        return None
+    link_bits = np.asarray(link_bits, dtype=np.float64)
+    if link_bits.ndim != 3 or link_bits.shape[1:] != (k, k):
+        raise ValueError(f"link_bits must have shape (T, {k}, {k}), got {link_bits.shape}")
+    if link_bits.shape[0] == num_frames - 1:
+        link_bits = np.concatenate([link_bits, np.zeros((1, k, k))])
+    if link_bits.shape[0] != num_frames:
+        raise ValueError(f"link_bits has {link_bits.shape[0]} steps for {num_frames} states")
+    return link_bits * (1 - np.eye(k))[None]
+
+
+@dataclasses.dataclass(frozen=True)
+class _Pens:
+    """What every frame of one episode is drawn with: its layout, fonts and stroke sizes."""
+
+    layout: FrameLayout
+    head_font: ImageFont.FreeTypeFont | ImageFont.ImageFont
+    caption_font: ImageFont.FreeTypeFont | ImageFont.ImageFont
+    legend_font: ImageFont.FreeTypeFont | ImageFont.ImageFont
+    label_font: ImageFont.FreeTypeFont | ImageFont.ImageFont
+    agent_font: ImageFont.FreeTypeFont | ImageFont.ImageFont | None
+    """None when the discs are too small to hold their index."""
+    r_agent: float
+    r_goal: float
+    offset: float
+    """Distance of a link's line from the segment between its agents."""
+    clearance: float
+    """Distance from that segment that a label keeps."""
+    trim_from: float
+    trim_to: float
+    silent_width: int
+    label_pad: float
+    label_h: float
+    max_bits: float
+    """The busiest link's bits in the episode (1 without links)."""
+    bounds: Box
+    """Where labels may go: the frame between header and footer."""
+    label_w: dict[str, float] = dataclasses.field(default_factory=dict)
+    """Width of each label text drawn so far (a cache)."""
+
+    @property
+    def footer_top(self) -> float:
+        return self.layout.size - self.layout.footer
+
+    @classmethod
+    def of(cls, layout: FrameLayout, config: NavConfig, link_bits: np.ndarray | None) -> _Pens:
+        u = layout.unit
+        label_font = _font(max(17.0 * u, 8))
+        r_agent = layout.agent_radius
+        offset = layout.link_offset
+        label_pad = max(1.0, 3.0 * u)
+        digits = label_font.getbbox("0123456789", anchor="mm")
+        return cls(
+            layout=layout,
+            head_font=_font(0.5 * layout.header),
+            caption_font=_font(0.26 * layout.footer),
+            legend_font=_font(0.2 * layout.footer),
+            label_font=label_font,
+            agent_font=_font(1.15 * r_agent) if r_agent >= 6 else None,
+            r_agent=r_agent,
+            r_goal=config.success_radius * layout.scale,
+            offset=offset,
+            clearance=offset + 0.5 * layout.max_link_width + 1.0 * u,
+            trim_from=r_agent + 2.0 * u,
+            trim_to=r_agent + 3.0 * u,
+            silent_width=max(1, int(round(1.5 * u))),
+            label_pad=label_pad,
+            label_h=digits[3] - digits[1] + 2 * label_pad,
+            max_bits=max(1e-12, float(link_bits.max())) if link_bits is not None else 1.0,
+            bounds=(2.0, layout.header + 2.0, layout.size - 2.0, layout.size - layout.footer - 2.0),
+        )
+
+
+def _background(pens: _Pens, config: NavConfig, k: int, with_links: bool) -> Image.Image:
+    """The static part of every frame: margin band, arena, footer bar and legend."""
+    layout, u = pens.layout, pens.layout.unit
+    size = layout.size
     background = Image.new("RGB", (size, size), (255, 255, 255))
     draw = ImageDraw.Draw(background)
     a = config.arena_half_width
@@ -469,107 +564,103 @@ def render_frames(
         outline=(120, 120, 120),
         width=max(1, int(round(u))),
     )
-    footer_top = size - layout.footer
+    footer_top = pens.footer_top
     draw.rectangle([0, footer_top, size, size], fill=(245, 245, 245))
     draw.line([0, footer_top, size, footer_top], fill=(200, 200, 200), width=1)
-    _legend(draw, layout, config, k, link_bits is not None, legend_font)
-    bounds = (2.0, layout.header + 2.0, size - 2.0, footer_top - 2.0)
+    _legend(draw, layout, config, k, with_links, pens.legend_font)
+    return background
 
-    cum_bits = 0.0
-    frames = []
-    for t in range(num_frames):
-        img = background.copy()
-        draw = ImageDraw.Draw(img)
-        pos = layout.to_px(s["pos"][t])
-        goals = layout.to_px(s["goals"][t])
-        for i in range(k):
-            _goal_marker(draw, goals[i], AGENT_COLOURS[i % len(AGENT_COLOURS)], r_goal, u)
 
-        step_bits = 0.0
-        labels: list[tuple[tuple[int, int], str]] = []
-        if link_bits is not None:
-            bits = link_bits[t]
-            step_bits = float(bits.sum())
-            active = []
-            for i in range(k):
-                for j in range(k):
-                    if i == j:
-                        continue
-                    line = link_line(pos[i], pos[j], offset, trim_from, trim_to, i, j)
-                    if bits[i, j] > 0:
-                        active.append((i, j, line))
-                        labels.append(((i, j), format_bits(bits[i, j])))
-                    elif line is not None:
-                        _dashed_line(draw, *line, SILENT_COLOUR, silent_width, 7 * u + 1, 5 * u + 1)
-            # Busiest links last, so they are on top where lines cross.
-            for i, j, line in sorted(active, key=lambda x: bits[x[0], x[1]]):
-                if line is None:
-                    continue
-                colour = AGENT_COLOURS[i % len(AGENT_COLOURS)]
-                _arrow(
-                    draw,
-                    *line,
-                    link_colour(colour, bits[i, j], max_bits),
-                    layout.link_width(bits[i, j], max_bits),
-                    u,
-                )
-        cum_bits += step_bits
-
-        for i in range(k):
-            colour = AGENT_COLOURS[i % len(AGENT_COLOURS)]
-            _agent_disc(draw, pos[i], colour, r_agent, i, agent_font, u)
-
-        if labels:
-            sizes = []
-            for _, text in labels:
-                if text not in label_w:
-                    box = label_font.getbbox(text, anchor="mm")
-                    label_w[text] = box[2] - box[0] + 2 * label_pad
-                sizes.append((label_w[text], label_h))
-            obstacles = [
-                (x - r_agent - 2, y - r_agent - 2, x + r_agent + 2, y + r_agent + 2)
-                for x, y in np.concatenate([pos, goals])
-            ]
-            links = [ij for ij, _ in labels]
-            boxes = link_label_boxes(pos, links, sizes, clearance, bounds, obstacles)
-            for ((i, j), text), box in zip(labels, boxes, strict=True):
-                colour = AGENT_COLOURS[i % len(AGENT_COLOURS)]
-                centre = np.array([(box[0] + box[2]) / 2, (box[1] + box[3]) / 2])
-                anchor = pos[i] + (pos[j] - pos[i]) / 3 + link_normal(pos[i], pos[j], i, j) * offset
-                if np.hypot(*(centre - anchor)) > clearance + 2.5 * label_h:
-                    draw.line([tuple(centre), tuple(anchor)], fill=_mix(colour, 0.4), width=1)
-                draw.rectangle(box, fill=(255, 255, 255), outline=colour, width=max(1, int(u)))
-                ink = tuple(int(0.8 * c) for c in colour)
-                draw.text(tuple(centre), text, fill=ink, font=label_font, anchor="mm")
-
-        success = bool(s["success"][t])
-        at_goal = int((np.hypot(*(s["pos"][t] - s["goals"][t]).T) < config.success_radius).sum())
-        draw.rectangle([0, 0, size, layout.header], fill=(30, 110, 30) if success else (40, 40, 40))
-        hy = layout.header / 2
-        draw.text(
-            (6 * u + 2, hy),
-            f"step {int(s['time'][t])} / {config.max_steps}",
-            fill=(255, 255, 255),
-            font=head_font,
-            anchor="lm",
+def _draw_links(draw, pens: _Pens, pos: np.ndarray, bits: np.ndarray) -> list:
+    """Draw one step's links (``bits`` (K, K)): silent ones dashed, then the others as arrows,
+    busiest last so they are on top where lines cross. Returns the labels to place, one
+    ``((i, j), text)`` per link that carries bits."""
+    u = pens.layout.unit
+    k = len(pos)
+    labels = []
+    active = []
+    for i in range(k):
+        for j in range(k):
+            if i == j:
+                continue
+            line = link_line(pos[i], pos[j], pens.offset, pens.trim_from, pens.trim_to, i, j)
+            if bits[i, j] > 0:
+                active.append((i, j, line))
+                labels.append(((i, j), format_bits(bits[i, j])))
+            elif line is not None:
+                _dashed_line(draw, *line, SILENT_COLOUR, pens.silent_width, 7 * u + 1, 5 * u + 1)
+    for i, j, line in sorted(active, key=lambda x: bits[x[0], x[1]]):
+        if line is None:
+            continue
+        _arrow(
+            draw,
+            *line,
+            link_colour(_agent_colour(i), bits[i, j], pens.max_bits),
+            pens.layout.link_width(bits[i, j], pens.max_bits),
+            u,
         )
-        status = "SUCCESS: all agents at their goals" if success else f"{at_goal}/{k} at goal"
-        draw.text((size - 6 * u - 2, hy), status, fill=(255, 255, 255), font=head_font, anchor="rm")
-        caption = f"step {int(s['time'][t])}"
-        if link_bits is not None:
-            caption += (
-                f"   team bits this step: {format_bits(step_bits)}"
-                f"   episode total: {format_bits(cum_bits)}"
-            )
-        draw.text(
-            (8 * u + 2, footer_top + 0.3 * layout.footer),
-            caption,
-            fill=(20, 20, 20),
-            font=caption_font,
-            anchor="lm",
-        )
-        frames.append(np.asarray(img, dtype=np.uint8))
-    return frames
+    return labels
+
+
+def _draw_labels(draw, pens: _Pens, pos: np.ndarray, goals: np.ndarray, labels: list) -> None:
+    """Draw each link's bit count in a box placed by :func:`link_label_boxes`, with a leader
+    line back to its link when the box had to move far from it."""
+    u = pens.layout.unit
+    sizes = []
+    for _, text in labels:
+        if text not in pens.label_w:
+            box = pens.label_font.getbbox(text, anchor="mm")
+            pens.label_w[text] = box[2] - box[0] + 2 * pens.label_pad
+        sizes.append((pens.label_w[text], pens.label_h))
+    r = pens.r_agent
+    obstacles = [
+        (x - r - 2, y - r - 2, x + r + 2, y + r + 2) for x, y in np.concatenate([pos, goals])
+    ]
+    links = [ij for ij, _ in labels]
+    boxes = link_label_boxes(pos, links, sizes, pens.clearance, pens.bounds, obstacles)
+    for ((i, j), text), box in zip(labels, boxes, strict=True):
+        colour = _agent_colour(i)
+        centre = np.array([(box[0] + box[2]) / 2, (box[1] + box[3]) / 2])
+        anchor = pos[i] + (pos[j] - pos[i]) / 3 + link_normal(pos[i], pos[j], i, j) * pens.offset
+        if np.hypot(*(centre - anchor)) > pens.clearance + 2.5 * pens.label_h:
+            draw.line([tuple(centre), tuple(anchor)], fill=_mix(colour, 0.4), width=1)
+        draw.rectangle(box, fill=(255, 255, 255), outline=colour, width=max(1, int(u)))
+        ink = tuple(int(0.8 * c) for c in colour)
+        draw.text(tuple(centre), text, fill=ink, font=pens.label_font, anchor="mm")
+
+
+def _draw_header(draw, pens: _Pens, config: NavConfig, s: dict, t: int) -> None:
+    """The header bar of step ``t``: the step number and the team's status (green on success)."""
+    layout, u = pens.layout, pens.layout.unit
+    size = layout.size
+    k = s["pos"].shape[1]
+    success = bool(s["success"][t])
+    at_goal = int((np.hypot(*(s["pos"][t] - s["goals"][t]).T) < config.success_radius).sum())
+    draw.rectangle([0, 0, size, layout.header], fill=(30, 110, 30) if success else (40, 40, 40))
+    hy = layout.header / 2
+    draw.text(
+        (6 * u + 2, hy),
+        f"step {int(s['time'][t])} / {config.max_steps}",
+        fill=(255, 255, 255),
+        font=pens.head_font,
+        anchor="lm",
+    )
+    status = "SUCCESS: all agents at their goals" if success else f"{at_goal}/{k} at goal"
+    draw.text(
+        (size - 6 * u - 2, hy), status, fill=(255, 255, 255), font=pens.head_font, anchor="rm"
+    )
+
+
+def _draw_caption(draw, pens: _Pens, caption: str) -> None:
+    """The caption line of the footer."""
+    layout, u = pens.layout, pens.layout.unit
+    draw.text(
+        (8 * u + 2, pens.footer_top + 0.3 * layout.footer),
+        caption,
+        fill=(20, 20, 20),
+        font=pens.caption_font,
+        anchor="lm",
+    )
 
 
 def write_gif(
