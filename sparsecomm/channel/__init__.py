@@ -17,9 +17,9 @@ code) and what its mode does (``speaks``, ``quantizes``, ``sends_symbols``, ...)
 channel (``links``), used by the rollout, the plug-in layer and every deployed agent:
 ``transmit(cfg, z, u, keys, t, live=live)`` is the sender side for links laid out by sender
 slot ``(..., K, K-1, C)``, in any mode, with what it cost; ``receive(cfg, message, u, ok=ok,
-last=last)`` the receiver side, with the one rule for a missing packet; ``live_links`` turns a
-``Routing`` or a traced mask into the links that exist; ``deliver`` routes reconstructions to
-their recipients; ``lossy.LossyLinks`` is the noise between them inside a rollout. This
+last=last)`` the receiver side, with the one rule for a missing packet. Its layout and routing
+(``routing``): ``live_links`` turns a ``Routing`` or a traced mask into the links that exist;
+``deliver`` routes reconstructions to their recipients; ``lossy.LossyLinks`` is the noise between them inside a rollout. This
 package imports nothing else of sparsecomm.
 
 Any other team (``layer``, docs/plugin.md): ``send(key, z, routing, t=t)`` sends signals over any
@@ -47,22 +47,13 @@ from sparsecomm.channel.gate import GATES, gate, hard_gate
 from sparsecomm.channel.layer import Messages, reconstruct, send
 from sparsecomm.channel.links import (
     Received,
-    Routing,
     Sent,
     decode_link,
-    deliver,
     dither_links,
     encode_link,
-    inbox,
     link_dither,
-    link_tables,
-    live_links,
     null_message,
-    others,
-    pairs,
     receive,
-    routing_mask,
-    slots,
     step_dither,
     transmit,
 )
@@ -74,6 +65,17 @@ from sparsecomm.channel.quantizer import (
     dither_key,
     quantize,
     quantize_dithered,
+)
+from sparsecomm.channel.routing import (
+    Routing,
+    deliver,
+    inbox,
+    link_tables,
+    live_links,
+    others,
+    pairs,
+    routing_mask,
+    slots,
 )
 
 __all__ = [

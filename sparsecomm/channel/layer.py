@@ -49,23 +49,14 @@ from sparsecomm.channel.codes import Code, as_code
 from sparsecomm.channel.config import ChannelConfig
 from sparsecomm.channel.fitted import FittedCode
 from sparsecomm.channel.gate import gate as apply_gate
-from sparsecomm.channel.links import (
-    Routing,
-    dither_links,
-    key_batch_shape,
-    others,
-    pairs,
-    receive,
-    routing_mask,
-    slots,
-    transmit,
-)
+from sparsecomm.channel.links import dither_links, key_batch_shape, receive, transmit
 from sparsecomm.channel.quantizer import (
     MAX_AGENTS,
     MAX_STEPS,
     check_levels,
     check_unit_interval,
 )
+from sparsecomm.channel.routing import Routing, others, pairs, routing_mask, slots
 
 __all__ = ["Messages", "Routing", "reconstruct", "send"]
 
