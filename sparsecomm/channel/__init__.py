@@ -19,8 +19,8 @@ channel (``links``), used by the rollout, the plug-in layer and every deployed a
 slot ``(..., K, K-1, C)``, in any mode, with what it cost; ``receive(cfg, message, u, ok=ok,
 last=last)`` the receiver side, with the one rule for a missing packet. Its layout and routing
 (``routing``): ``live_links`` turns a ``Routing`` or a traced mask into the links that exist;
-``deliver`` routes reconstructions to their recipients; ``lossy.LossyLinks`` is the noise between them inside a rollout. This
-package imports nothing else of sparsecomm.
+``deliver`` routes reconstructions to their recipients; ``lossy.LossyLinks`` is the noise
+between them inside a rollout. This package imports nothing else of sparsecomm.
 
 Any other team (``layer``, docs/plugin.md): ``send(key, z, routing, t=t)`` sends signals over any
 routing (``Routing``) and returns ``Messages`` (symbols, inbox, penalty, bits per link).
