@@ -66,6 +66,7 @@ class Trajectory:
     penalty: jax.Array  # (T, B) surrogate bit penalty, summed over links and elements
     payload_bits: jax.Array  # (T, B) real payload bits sent by the team
     wire_bits: jax.Array  # (T, B) bits on the wire, framing included
+    speaking: jax.Array  # (T, B) links whose packet is not empty (silent links send nothing)
     link_bits: jax.Array  # (T, B, K, K) payload bits sent i -> j (zero diagonal)
     msg_log_probs: jax.Array  # (T, B, K) log-prob of sender i's symbols ("reinforced"; else 0)
     env_states: Any = None  # batched NavState per step (only when ``keep_states``)
@@ -85,6 +86,7 @@ class Carry(NamedTuple):
     expert: Any  # the expert's carry (None without an expert)
     prev_symbols: jax.Array  # (B, K, K-1, C) int32 each link's symbols at the previous step
     links: Any  # channel.lossy.LinkState of the noisy links (None on a clean channel)
+    last: Any  # (B, K, K-1, C) each link's last good message (None unless a rule reads it)
     heard: Any  # (B, K, K-1) bool which links each recipient heard (None: all, the full team)
 
 
@@ -143,7 +145,9 @@ def rollout(
         noise["expert"] = jax.random.split(keys["expert"], num_steps)
         noise["mix"] = jax.random.uniform(keys["mix"], (num_steps, num_envs, 1))
     lossy = None
+    keeps_last = channel_cfg.holds
     if channel_cfg.speaks and not channel_cfg.noise.clean:
+        keeps_last |= channel_cfg.noise.on_drop == "last"
         lossy = channel.lossy.LossyLinks(channel_cfg, key, num_envs, k, num_steps)
         noise["loss"] = lossy.step_keys
     # Episodes are independent: split them over the mesh's episodes axis, if there is one.
@@ -152,11 +156,12 @@ def rollout(
     init = Carry(
         env_state=state,
         obs=obs,
-        msgs=jnp.zeros((num_envs, k, (k - 1) * c), jnp.float32),
+        msgs=jnp.zeros((num_envs, k, (k - 1) * (c + channel_cfg.holds)), jnp.float32),
         gru=team.initial_carry(num_envs),
         expert=expert.init(num_envs) if expert is not None else None,
         prev_symbols=jnp.zeros((num_envs, k, k - 1, c), jnp.int32),
         links=None if lossy is None else lossy.init,
+        last=jnp.zeros((num_envs, k, k - 1, c), jnp.float32) if keeps_last else None,
         heard=jnp.zeros((num_envs, k, k - 1), bool) if masked else None,
     )
     init = split_episodes(init._replace(expert=None), axis=0)._replace(expert=init.expert)
@@ -190,12 +195,20 @@ def rollout(
         arrived, ok, links, lost = sent.z_hat, None, carry.links, None
         if lossy is not None:  # packets lost, late, or corrupted
             arrived, ok, links, lost = lossy.step(noise["loss"], sent, u, links)
-        last = None if links is None else links.last
         got = channel.receive(
-            channel_cfg, arrived, u, ok=ok, last=last, on_drop=channel_cfg.noise.on_drop, live=live
+            channel_cfg,
+            arrived,
+            u,
+            ok=ok,
+            last=carry.last,
+            on_drop=channel_cfg.noise.on_drop,
+            live=live,
+            speak=sent.speak,
+            silent=sent.wire_bits == 0 if channel_cfg.holds and sent.speak is None else None,
         )
-        if links is not None:
-            links = links._replace(last=got.last)
+        msgs = channel.deliver(got.z_hat)
+        if got.news is not None:  # which messages are news, by recipient
+            msgs = jnp.concatenate([msgs, channel.inbox(got.news)], -1)
         global_state = jax.vmap(env.global_state)(state)
         valid = ~state.done
         next_obs, next_state, rewards, dones, info = jax.vmap(env.step)(
@@ -213,6 +226,7 @@ def rollout(
             penalty=sent.penalty.sum((-2, -1)),
             payload_bits=sent.payload_bits.sum((-2, -1)),
             wire_bits=sent.wire_bits.sum((-2, -1)),
+            speaking=(sent.wire_bits > 0).sum((-2, -1)).astype(jnp.float32),
             link_bits=channel.pairs(sent.payload_bits),
             msg_log_probs=sent.log_prob,
             env_states=state if keep_states else None,
@@ -224,11 +238,12 @@ def rollout(
         carry = Carry(
             env_state=next_state,
             obs=next_obs,
-            msgs=channel.deliver(got.z_hat),
+            msgs=msgs,
             gru=gru,
             expert=expert_carry,
             prev_symbols=sent.symbols,
             links=links,
+            last=got.last,
             heard=None if live is None else channel.inbox(live),
         )
         return carry, record
@@ -268,9 +283,10 @@ def agent_draws(
 
 
 def episode_metrics(traj: Trajectory) -> dict[str, jax.Array]:
-    """Batch means of the SPEC section 6 metrics (rewards in the paper's units); with a noisy
-    channel also ``packets_lost_per_step``, with routing ``links_per_step`` (links that
-    existed)."""
+    """Batch means of the SPEC section 6 metrics (rewards in the paper's units), and
+    ``speaking_fraction``, the share of the link-steps (of links that existed) whose packet was
+    not empty; with a noisy channel also ``packets_lost_per_step``, with routing
+    ``links_per_step`` (links that existed)."""
     valid = traj.valid.astype(jnp.float32)
     steps = valid.sum()
     metrics = {
@@ -281,6 +297,9 @@ def episode_metrics(traj: Trajectory) -> dict[str, jax.Array]:
         "wire_bits_per_step": (traj.wire_bits * valid).sum() / steps,
         "penalty": (traj.penalty * valid).sum() / steps,
     }
+    k = traj.link_bits.shape[-1]
+    links = k * (k - 1) * valid if traj.links is None else traj.links * valid
+    metrics["speaking_fraction"] = (traj.speaking * valid).sum() / jnp.maximum(links.sum(), 1.0)
     if traj.lost is not None:
         metrics["packets_lost_per_step"] = (traj.lost * valid).sum() / steps
     if traj.links is not None:

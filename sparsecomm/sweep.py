@@ -39,6 +39,7 @@ METRIC_ORDER = [
     "success_rate",
     "bits_per_step",
     "wire_bits_per_step",
+    "speaking_fraction",
     "penalty",
 ]
 

@@ -135,6 +135,18 @@ class Code:
         table = np.asarray(self.remap)
         return np.floor(np.log2(table + 1)).astype(np.int32)
 
+    def wire_lengths(self, num_elements: int) -> np.ndarray:
+        """(C, levels + 1) bits each element's symbol adds to a packet's body beyond the
+        presence bitmap (0 for the null, which is absent): ``2 L(remap[k][m])`` for the paper
+        code, ``fixed_width`` for the fixed one. Not for ``float32``, which sends values."""
+        if self.name == "float32":
+            raise ValueError("Code.wire_lengths is for symbol codes ('paper', 'fixed')")
+        m = np.broadcast_to(np.arange(self.levels + 1), (num_elements, self.levels + 1))
+        if self.name == "fixed":
+            return np.where(m > 0, self.fixed_width, 0).astype(np.int32)
+        index = self.mapped(np.ascontiguousarray(m)) if self.remap else m
+        return (2 * np.floor(np.log2(index + 1))).astype(np.int32)
+
     @property
     def fixed_width(self) -> int:
         """``ceil(log2(levels + 1))``: bits per element of the fixed-width code."""

@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from sparsecomm.channel.quantizer import check_levels, check_unit_interval
 
-__all__ = ["bit_penalty", "expected_bits"]
+__all__ = ["bit_penalty", "expected_bits", "expected_wire_bits"]
 
 
 def bit_penalty(z: jax.Array, levels: int) -> jax.Array:
@@ -44,6 +45,55 @@ def expected_bits(z: jax.Array, levels: int, lengths) -> jax.Array:
     table = jnp.asarray(lengths, jnp.float32)
     k = jnp.arange(table.shape[0])
     return (1.0 - frac) * table[k, lo] + frac * table[k, hi]
+
+
+_ROLL = (np.arange(8)[:, None] - np.arange(8)[None, :]) % 8  # [r, s]: (r - s) mod 8
+
+
+def expected_wire_bits(
+    z: jax.Array, levels: int, wire_lengths, frame_bits: int | None = None
+) -> jax.Array:
+    """Exact expected packet bits of one link under the dithered quantizer: ``E[8 *
+    len(encode(m))]`` for signals ``z`` (..., C), differentiable (piecewise linear in each
+    element between symbol boundaries). Returns (...).
+
+    ``wire_lengths`` (C, levels + 1): the bits each element's symbol adds to the packet's body
+    (``Code.wire_lengths``; 0 for the null). A link of all-null symbols sends nothing; any
+    other packet is the C-bit presence bitmap, the codewords (S bits), zero padding to a byte
+    and the 32-bit CRC (``frame_bits``, default ``C + 32``, is everything but the codewords and
+    the padding). So with ``p0 = P(every symbol is null)``::
+
+        E[W] = (1 - p0) frame_bits + E[S] + E[pad(C + S); some symbol not null]
+
+    Element k's symbol is ``floor(levels z_k)`` or one more (probability ``f_k``, the
+    fractional part), independently across elements (each has its own dither), so ``p0`` is the
+    product of ``P(m_k = 0) = max(0, 1 - levels z_k)`` and the padding's distribution is the
+    circular convolution, modulo 8, of the elements' codeword lengths. The cliff: ``p0`` is 0,
+    with no gradient, as soon as one element has ``levels z_k >= 1``.
+    """
+    levels = check_levels(levels)
+    check_unit_interval(z)
+    x = levels * jnp.asarray(z, jnp.float32)
+    c = x.shape[-1]
+    lo = jnp.clip(jnp.floor(jax.lax.stop_gradient(x)), 0, levels).astype(jnp.int32)
+    hi = jnp.minimum(lo + 1, levels)
+    f = x - lo
+    table = jnp.asarray(wire_lengths, jnp.int32)
+    k = jnp.arange(c)
+    len_lo, len_hi = table[k, lo], table[k, hi]
+    codewords = ((1.0 - f) * len_lo + f * len_hi).sum(-1)
+    p0 = jnp.prod(jnp.where(lo == 0, 1.0 - f, 0.0), -1)
+    # the distribution of S mod 8, element by element
+    dist = jax.nn.one_hot(jnp.zeros(x.shape[:-1], jnp.int32), 8)
+    for j in range(c):
+        one = (1.0 - f[..., j, None]) * jax.nn.one_hot(len_lo[..., j] % 8, 8) + f[
+            ..., j, None
+        ] * jax.nn.one_hot(len_hi[..., j] % 8, 8)
+        dist = jnp.einsum("...s,...rs->...r", dist, one[..., _ROLL])
+    frame = c + 32 if frame_bits is None else frame_bits
+    pad = jnp.asarray((-(c + np.arange(8))) % 8, jnp.float32)
+    speaking_dist = dist - p0[..., None] * jax.nn.one_hot(0, 8)  # S = 0 when all are null
+    return (1.0 - p0) * frame + codewords + (speaking_dist * pad).sum(-1)
 
 
 def code_penalty(z: jax.Array, levels: int, code) -> jax.Array:
