@@ -52,7 +52,7 @@ class Actor(nn.Module):
     gru: int
     num_actions: int
     num_recipients: int
-    num_elements: int
+    num_elements: int  # of each link's signal, its gate included (ChannelConfig.signal_elements)
     message_bias_init: float = 0.0
     message_gate: str = "sigmoid"
     attention: bool = False
@@ -96,16 +96,28 @@ class Team:
         num_actions: int,
         num_elements: int,
         state_dim: int,
+        gate_elements: int = 0,
+        news_inputs: bool = False,
     ):
+        """``num_elements``: C, the message elements of each link; ``gate_elements``: the
+        link's gate the head emits beside them (``ChannelConfig.link_gate``); ``news_inputs``:
+        each receiver also reads, per link, whether its message is news
+        (``ChannelConfig.on_silence = "hold"``; the ``concat`` inbox only)."""
         check_fits(cfg, num_agents)
+        if news_inputs and cfg.aggregate != "concat":
+            raise ValueError(
+                "ChannelConfig.on_silence 'hold' needs AgentConfig.aggregate 'concat', got "
+                f"{cfg.aggregate!r}"
+            )
         self.cfg = cfg
         self.num_agents = num_agents
         self.num_actions = num_actions
         self.num_elements = num_elements
+        self.news_inputs = news_inputs
         self.routed = cfg.neighbours is not None or cfg.radius is not None
         """Links follow the agents' positions (``sparsecomm.scaling.routing_mask``)."""
         inbox_sizes = {
-            "concat": (num_agents - 1) * num_elements,  # every link's message
+            "concat": (num_agents - 1) * (num_elements + news_inputs),  # every link's message
             "mean": num_elements + 1,  # their mean and the fraction of the team heard
             "attention": 1,  # the fraction heard; the attention's pool is added in the actor
         }
@@ -118,7 +130,7 @@ class Team:
             cfg.gru,
             num_actions,
             num_agents - 1,
-            num_elements,
+            num_elements + gate_elements,
             cfg.message_bias_init,
             cfg.message_gate,
             cfg.aggregate == "attention",
@@ -176,14 +188,15 @@ class Team:
         layer) emits from GRU states ``hidden`` (..., K, H): summed over each agent's links and
         elements, (..., K). The same numbers as the rollout's penalty for the same states, as a
         function of the head alone (for a penalty step outside the optimiser). ``penalty``: the
-        channel's per-element cost of ``z`` (``ChannelConfig.penalty``)."""
+        channel's cost of each link, (..., C) -> (...) (``ChannelConfig.link_penalty``)."""
         kernel, bias = head_params["kernel"], head_params["bias"]
         if self.cfg.share_params:
             a = hidden @ kernel + bias
         else:  # one head per agent, stacked on a leading agent axis
             a = jnp.einsum("...kh,khm->...km", hidden, kernel) + bias
         z = gate(self.cfg.message_gate, a)
-        return penalty(z).sum(-1)
+        links = z.reshape(*z.shape[:-1], self.num_agents - 1, -1)  # (..., K, K-1, C)
+        return penalty(links).sum(-1)
 
     def value(self, critic_params, state: jax.Array) -> jax.Array:
         """(..., state_dim) -> (..., K) values."""

@@ -216,10 +216,11 @@ def log(state: BudgetState, price) -> dict[str, jax.Array]:
     return {"price": price, "bit_target": jnp.where(has_budget(state), state.target, jnp.nan)}
 
 
-def measured_bits(cfg: BudgetConfig, metrics: dict, num_agents: int) -> jax.Array:
-    """The bits an update's episodes sent, in the budget's units: the team's payload bits per
-    step, or per link that existed (``BudgetConfig.per_link``)."""
-    bits = metrics["bits_per_step"]
+def measured_bits(cfg: BudgetConfig, metrics: dict, num_agents: int, channel=None) -> jax.Array:
+    """The bits an update's episodes sent, in the budget's units: the team's bits per step in
+    the count the channel prices (``ChannelConfig.prices``: payload, default, or wire), or per
+    link that existed (``BudgetConfig.per_link``)."""
+    bits = metrics["bits_per_step" if channel is None else channel.counted_metric]
     if not cfg.per_link:
         return bits
     links = metrics.get("links_per_step", num_agents * (num_agents - 1))
@@ -277,7 +278,7 @@ def decoupled_update(
 ):
     """A learner's parameters after the decoupled penalty step (unchanged unless
     ``cfg.decoupled``). ``message_penalty(head, hidden, penalty)`` is ``Team.message_penalty``
-    and ``penalty`` the channel's per-element cost (``ChannelConfig.penalty``);
+    and ``penalty`` the channel's cost of each link (``ChannelConfig.link_penalty``);
     ``hidden`` (T, B, K, H) and ``valid`` (T, B) come from the update's rollout."""
     if not cfg.decoupled:
         return params

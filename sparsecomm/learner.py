@@ -93,6 +93,8 @@ def make_team(config: LearnerConfig, env=None) -> tuple[NavigationEnv, Team]:
         env.num_actions,
         config.channel.num_elements,
         env.state_dim,
+        gate_elements=int(config.channel.link_gate),
+        news_inputs=config.channel.holds,
     )
     return env, team
 
@@ -136,7 +138,7 @@ def make_learner(
             aux.hidden,
             aux.valid,
             price,
-            config.channel.penalty,
+            config.channel.link_penalty,
         )
         for part, g in grads.items():
             metrics[f"{part}_grad_norm"] = optax.tree.norm(g)
@@ -149,7 +151,7 @@ def make_learner(
         controller = bit_budget.update(
             config.budget,
             state.budget,
-            bit_budget.measured_bits(config.budget, metrics, env.num_agents),
+            bit_budget.measured_bits(config.budget, metrics, env.num_agents, config.channel),
             success_of(metrics, state.update),
         )
         metrics.update(bit_budget.log(state.budget, price))

@@ -109,6 +109,35 @@ def test_tiny_rl_run_moves_its_bits_toward_the_budget(fast_compile):
 
 
 @pytest.mark.slow
+def test_a_wire_budget_on_gated_links_makes_them_fall_silent(fast_compile):
+    # The gate's price (g times the link's expected packet bits) has a gradient wherever the
+    # link speaks, so a wire budget closes links instead of only shortening their codewords.
+    gated = ChannelConfig(link_gate=True, on_silence="hold", prices="wire")
+    tr = make_train(dataclasses.replace(TINY_RL, channel=gated))
+    keys = jnp.stack([jax.random.key(0)] * 2)
+    train = jax.jit(jax.vmap(tr.train, (0, None, 0)))
+    _, m = train(keys, 0.0, jnp.array([jnp.nan, 24.0]))
+    speaking, wire = np.asarray(m["speaking_fraction"]), np.asarray(m["wire_bits_per_step"])
+    assert 0.3 < speaking[:, :3].mean() < 0.7  # the gates start half open
+    assert speaking[1, -5:].mean() < 0.5 * speaking[0, -5:].mean(), speaking[:, -5:]
+    assert wire[1, -5:].mean() < 0.5 * wire[0, -5:].mean()
+    np.testing.assert_allclose(m["bit_target"][1, -1], 24.0)
+
+
+@pytest.mark.parametrize("share", [True, False])
+def test_gated_message_penalty_of_the_head_matches_the_rollout(share, fast_compile):
+    gated = ChannelConfig(link_gate=True, prices="wire")
+    agent = AgentConfig(share_params=share)
+    cfg = RLConfig(env=NavConfig(max_steps=6), num_envs=3, agent=agent, channel=gated)
+    tr = make_train(cfg)
+    actor = tr.team.init(jax.random.key(0))["actor"]
+    traj = rollout(tr.team, tr.env, cfg.channel, actor, jax.random.key(1), 3, keep_hidden=True)
+    head = actor["params"]["message"]
+    again = tr.team.message_penalty(head, traj.hidden, cfg.channel.link_penalty).sum(-1)
+    np.testing.assert_allclose(again, traj.penalty, rtol=1e-5)
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("gate, recovers", [("hard", True), ("sigmoid", False)])
 def test_silenced_channel_recovers_when_the_budget_is_raised(gate, recovers, fast_compile):
     # Imitation of the oracle: the learners need each other's messages to predict its actions.
@@ -177,7 +206,7 @@ def test_message_penalty_of_the_head_matches_the_rollout(share, fast_compile):
     actor = tr.team.init(jax.random.key(0))["actor"]
     traj = rollout(tr.team, tr.env, cfg.channel, actor, jax.random.key(1), 3, keep_hidden=True)
     head = actor["params"]["message"]
-    again = tr.team.message_penalty(head, traj.hidden, cfg.channel.penalty).sum(-1)
+    again = tr.team.message_penalty(head, traj.hidden, cfg.channel.link_penalty).sum(-1)
     np.testing.assert_allclose(again, traj.penalty, rtol=1e-5)
 
 

@@ -410,3 +410,119 @@ def test_inside_jit_out_of_range_z_is_clipped_not_checked():
     quantize = jax.jit(channel.quantize, static_argnums=2)
     m, _ = quantize(jax.random.key(0), jnp.array([-2.0, 3.0]), 15)
     np.testing.assert_array_equal(m, [0, 15])
+
+
+@pytest.mark.parametrize("name", ["paper", "fixed"])
+@pytest.mark.parametrize("scale", [0.02, 0.08, 1.0])
+def test_expected_wire_bits_match_the_encoders_mean_packet(name, scale):
+    """The differentiable price of speaking is the exact mean of the real packets' bits."""
+    levels, c, n = 15, 10, 4000
+    code = channel.Code(name, levels)
+    rng = np.random.default_rng(int(scale * 100))
+    z = rng.uniform(0, scale, c).astype(np.float32) * (rng.random(c) < 0.6)
+    u = np.asarray(jax.random.uniform(jax.random.key(1), (n, c), minval=-0.5, maxval=0.5))
+    m = np.clip(np.floor(levels * z + u + 0.5), 0, levels).astype(np.int64)
+    bits = np.array([8 * len(channel.encode(link, code)) for link in m])
+    expect = float(channel.expected_wire_bits(jnp.asarray(z), levels, code.wire_lengths(c)))
+    se = max(bits.std() / np.sqrt(n), 1e-6)
+    assert abs(bits.mean() - expect) < 4 * se + 1e-4, (bits.mean(), expect, se)
+
+
+def test_expected_wire_bits_gradient_matches_finite_differences_where_smooth():
+    levels, c = 15, 4
+    table = channel.Code("paper", levels).wire_lengths(c)
+    z = jnp.asarray([0.01, 0.03, 0.0, 0.05])  # all below 1 / levels: every element may be null
+    f = lambda z: channel.expected_wire_bits(z, levels, table)  # noqa: E731
+    grad = np.asarray(jax.grad(f)(z))
+    h = 1e-3
+    for k in range(c):
+        step = jnp.zeros(c).at[k].set(h)
+        fd = (float(f(z + step)) - float(f(jnp.maximum(z - step, 0.0)))) / (2 * h if k != 2 else h)
+        assert abs(grad[k] - fd) < 1e-2 * max(1.0, abs(fd)), (k, grad[k], fd)
+    assert grad.min() > 0  # speaking costs more the likelier it is
+    # the cliff: once one element is surely not null, the others' chance of silence is gone
+    cliff = np.asarray(jax.grad(f)(z.at[0].set(0.5)))
+    assert cliff[1] < grad[1]
+
+
+def test_a_link_gate_opens_with_its_probability_and_a_closed_link_sends_nothing():
+    cfg = channel.ChannelConfig(link_gate=True, prices="wire")
+    b, k, c = 2000, 3, cfg.num_elements
+    z = jax.random.uniform(jax.random.key(0), (b, k, k - 1, c + 1))
+    g = jnp.asarray([0.1, 0.5, 0.9])[None, :, None]  # sender i's gate, on both its links
+    z = z.at[..., -1].set(jnp.broadcast_to(g, (b, k, k - 1)))
+    u = channel.dither(jax.random.key(1), z.shape)
+    sent = channel.transmit(cfg, z, u)
+    opened = np.asarray(sent.speak) > 0
+    for i, p in enumerate([0.1, 0.5, 0.9]):
+        rate = opened[:, i].mean()
+        assert abs(rate - p) < 4 * np.sqrt(p * (1 - p) / opened[:, i].size), (i, rate)
+    closed = ~opened
+    assert not np.asarray(sent.symbols)[closed].any()  # every element null
+    assert (
+        not np.asarray(sent.wire_bits)[closed].any()
+        and not np.asarray(sent.payload_bits)[closed].any()
+    )
+    # the penalty is the gate times the link's expected packet bits: its gradient in g is that price
+    price = channel.expected_wire_bits(z[..., :-1], cfg.levels, cfg.code_obj.wire_lengths(c))
+    np.testing.assert_allclose(sent.penalty, z[..., -1] * price, rtol=1e-5)
+    grad = jax.grad(lambda z: channel.transmit(cfg, z, u).penalty.sum())(z)
+    np.testing.assert_allclose(grad[..., -1], price, rtol=1e-5)
+    # straight-through: what a receiver reads moves with the gate by the message it would carry
+    null = -u[..., :-1] / cfg.levels
+    got = channel.receive(cfg, sent.z_hat, u, speak=sent.speak).z_hat
+    np.testing.assert_allclose(np.asarray(got)[closed], np.asarray(null)[closed], atol=1e-7)
+    np.testing.assert_allclose(np.asarray(got)[opened], np.asarray(sent.z_hat)[opened], atol=1e-7)
+    d = jax.grad(lambda g: channel.receive(cfg, sent.z_hat, u, speak=sent.speak + g).z_hat.sum())(
+        jnp.zeros_like(sent.speak)
+    )
+    np.testing.assert_allclose(d, (sent.z_hat - null).sum(-1), rtol=1e-4, atol=1e-5)
+
+
+def test_a_held_link_delivers_its_last_message_and_says_it_is_not_news():
+    cfg = channel.ChannelConfig(on_silence="hold", num_elements=2)
+    last = jnp.asarray([[0.3, 0.4], [0.0, 0.0], [0.7, 0.1]])
+    m = jnp.asarray([[5, 6], [0, 0], [2, 0]], jnp.int32)
+    u = jnp.full((3, 2), 0.25)
+    silent = jnp.asarray([False, True, False])
+    ok = jnp.asarray([True, True, False])  # link 2's packet lost: held too, not news
+    got = channel.receive(cfg, m, u, ok=ok, last=last, silent=silent)
+    np.testing.assert_allclose(got.z_hat[0], (m[0] - 0.25) / 15, rtol=1e-6)
+    np.testing.assert_array_equal(got.z_hat[1:], last[1:])
+    np.testing.assert_array_equal(got.news, [1.0, 0.0, 0.0])
+    np.testing.assert_array_equal(got.last[1:], last[1:])
+    np.testing.assert_allclose(got.last[0], got.z_hat[0])
+    with pytest.raises(ValueError, match="last"):
+        channel.receive(cfg, m, u, silent=silent)
+    # and the paper's rule: a silent link is the null message, always news
+    paper = channel.ChannelConfig(num_elements=2)
+    assert channel.receive(paper, m, u, silent=silent).news is None
+
+
+@pytest.mark.parametrize(
+    "field, value, match",
+    [
+        ("prices", "bytes", "ChannelConfig.prices"),
+        ("on_silence", "repeat", "ChannelConfig.on_silence"),
+        ("link_gate", 1, "ChannelConfig.link_gate"),
+    ],
+)
+def test_bad_silence_and_price_fields_are_refused_by_name(field, value, match):
+    with pytest.raises(ValueError, match=match):
+        channel.ChannelConfig(**{field: value})
+
+
+def test_wire_prices_and_gates_need_the_discrete_channel():
+    with pytest.raises(ValueError, match="ChannelConfig.prices"):
+        channel.ChannelConfig(mode="continuous", prices="wire")
+    with pytest.raises(ValueError, match="ChannelConfig.prices"):
+        channel.ChannelConfig(prices="wire", ecc="hamming74")
+    with pytest.raises(ValueError, match="ChannelConfig.link_gate"):
+        channel.ChannelConfig(mode="reinforced", link_gate=True)
+    with pytest.raises(ValueError, match="ChannelConfig.on_silence"):
+        channel.ChannelConfig(on_silence="hold", noise=channel.NoiseConfig(delay=1))
+    assert not channel.ChannelConfig(on_silence="hold").deployable
+    wire = channel.ChannelConfig(prices="wire")
+    assert wire.counted_metric == "wire_bits_per_step"
+    longest = 8 * len(channel.encode(np.full(10, 15), "paper"))  # every element's longest codeword
+    assert wire.max_bits_per_step(3) == 6 * longest

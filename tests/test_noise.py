@@ -333,7 +333,7 @@ def test_delay_line_delivers_what_was_sent_d_steps_before_and_null_until_then():
         bits = jnp.full((1, 3, 2), 24.0)
         sent = channel.Sent(None, sent_z[t], None, bits, bits, None, None)
         arrived, ok, state, lost = wire.step(wire.step_keys[t], sent, u, state)
-        got = channel.receive(cfg, arrived, u, ok=ok, last=state.last).z_hat
+        got = channel.receive(cfg, arrived, u, ok=ok).z_hat
         want = sent_z[t - 2] if t >= 2 else -u / cfg.levels  # null: all-null symbols
         np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=1e-6)
         assert float(lost.sum()) == 0

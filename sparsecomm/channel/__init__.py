@@ -41,7 +41,7 @@ from sparsecomm.channel.codes import (
     payload_bits,
     wire_bits,
 )
-from sparsecomm.channel.config import CHANNEL_MODES, ChannelConfig
+from sparsecomm.channel.config import CHANNEL_MODES, PRICES, ChannelConfig
 from sparsecomm.channel.fitted import FittedCode, fit
 from sparsecomm.channel.gate import GATES, gate, hard_gate
 from sparsecomm.channel.layer import Messages, reconstruct, send
@@ -58,7 +58,7 @@ from sparsecomm.channel.links import (
     transmit,
 )
 from sparsecomm.channel.noise import NoiseConfig, NoisyLink
-from sparsecomm.channel.penalty import bit_penalty, expected_bits
+from sparsecomm.channel.penalty import bit_penalty, expected_bits, expected_wire_bits
 from sparsecomm.channel.quantizer import (
     dequantize,
     dither,
@@ -80,6 +80,7 @@ from sparsecomm.channel.routing import (
 
 __all__ = [
     "CHANNEL_MODES",
+    "PRICES",
     "CODE_NAMES",
     "GATES",
     "MAX_ELEMENTS",
@@ -107,6 +108,7 @@ __all__ = [
     "encode",
     "encode_link",
     "expected_bits",
+    "expected_wire_bits",
     "fit",
     "frequency_remap",
     "gate",

@@ -19,10 +19,14 @@ from sparsecomm.channel.codes import CODE_NAMES, Code, frequency_remap
 from sparsecomm.channel.ecc import ECC_NAMES
 from sparsecomm.channel.fitted import FittedCode
 from sparsecomm.channel.noise import NoiseConfig
-from sparsecomm.channel.penalty import code_penalty
+from sparsecomm.channel.penalty import code_penalty, expected_wire_bits
 from sparsecomm.channel.quantizer import check_levels
 
 CHANNEL_MODES = ("discrete", "continuous", "off", "reinforced")
+PRICES = ("payload", "wire")
+"""What the bit penalty prices and a bit budget counts (``ChannelConfig.prices``)."""
+ON_SILENCE = ("null", "hold")
+"""What a receiver makes of a silent link (``ChannelConfig.on_silence``)."""
 CHANNEL_CODES = (*CODE_NAMES[:2], "fitted", "remapped", "permuted")
 
 
@@ -69,6 +73,29 @@ class ChannelConfig:
     the logged group reward). Neither the paper nor SPEC gives a value; ours: 0 (no cost), and
     ``sparsecomm reproduce`` uses 0.001, the price per bit that the surrogate penalty sets at
     lambda = 0.001 (lambda is in the same units, see ``sparsecomm.rl``)."""
+    prices: str = "payload"
+    """What the bit penalty prices and a bit budget (``BudgetConfig.bits``) counts, per step:
+    ``payload``, the paper's codeword bits (its penalty ``log2(levels z + 1)`` per element), or
+    ``wire``, every bit a packet carries, presence bitmap, padding and CRC-32 included (its
+    penalty the exact expected packet bits of each link under the dither,
+    ``channel.expected_wire_bits``, so falling silent is what saves most). ``wire`` needs the
+    ``discrete`` mode, the ``paper`` or ``fixed`` code and no ``ecc``. Paper: ``payload``; both
+    counts are logged either way."""
+    link_gate: bool = False
+    """Each link gets one more signal element from the message head, ``g`` in [0, 1]: whether
+    the link speaks this step, quantized with its own dither (1 with probability exactly ``g``,
+    straight-through gradient, as the other elements). A closed gate makes every element of the
+    link null, so the link sends nothing; the penalty is ``g`` times the link's price, a smooth
+    price of speaking at all where the elements' own chance of all being null has none (it is 0
+    as soon as one element exceeds ``1 / levels``). ``discrete`` mode, no delay. ours:
+    ``False`` (the paper has no gate; docs/wire.md)."""
+    on_silence: str = "null"
+    """What a receiver makes of a link that sent nothing this step: ``null``, the null message
+    (all-null symbols rebuilt with the link's dither; the paper's), or ``hold``, the last
+    message the link did send (zeros before the first), and each recipient also reads, per
+    link, whether this step's message is news (1) or held (0). Under ``hold`` a lost packet is
+    held too (a receiver that gets nothing cannot tell silence from loss). ``hold``: the
+    ``discrete`` mode, no delay, the ``concat`` inbox. Paper: ``null``."""
 
     def __post_init__(self):
         if self.mode not in CHANNEL_MODES:
@@ -101,6 +128,35 @@ class ChannelConfig:
             raise _bad("ecc", self.ecc, "'none' with code 'permuted' (its flips corrupt symbols)")
         if not (self.bit_cost >= 0 and self.bit_cost < float("inf")):
             raise _bad("bit_cost", self.bit_cost, "finite and >= 0")
+        if not isinstance(self.link_gate, bool):
+            raise _bad("link_gate", self.link_gate, "True or False")
+        if self.link_gate and (self.mode != "discrete" or self.noise.delay):
+            raise _bad(
+                "link_gate",
+                self.link_gate,
+                f"False unless mode is 'discrete' and noise.delay 0 (got mode {self.mode!r}, "
+                f"delay {self.noise.delay})",
+            )
+        if self.on_silence not in ON_SILENCE:
+            raise _bad("on_silence", self.on_silence, f"one of {ON_SILENCE}")
+        if self.on_silence == "hold" and (self.mode != "discrete" or self.noise.delay):
+            raise _bad(
+                "on_silence",
+                self.on_silence,
+                f"'null' unless mode is 'discrete' and noise.delay 0 (got mode {self.mode!r}, "
+                f"delay {self.noise.delay})",
+            )
+        if self.prices not in PRICES:
+            raise _bad("prices", self.prices, f"one of {PRICES}")
+        if self.prices == "wire" and (
+            self.mode != "discrete" or self.code not in ("paper", "fixed") or self.ecc != "none"
+        ):
+            raise _bad(
+                "prices",
+                self.prices,
+                "'payload' unless mode is 'discrete', code 'paper' or 'fixed' and ecc 'none' "
+                f"(got mode {self.mode!r}, code {self.code!r}, ecc {self.ecc!r})",
+            )
 
     # -- what the mode does: callers outside channel/ ask these, never compare ``mode`` --------
 
@@ -132,6 +188,18 @@ class ChannelConfig:
         return self.mode == "continuous"
 
     @property
+    def holds(self) -> bool:
+        """A silent link delivers its last message, and receivers read which links are news
+        (``on_silence = "hold"``)."""
+        return self.on_silence == "hold"
+
+    @property
+    def signal_elements(self) -> int:
+        """Elements of each link's signal ``z`` from the message head: the C message elements,
+        and the link's gate (``link_gate``) last."""
+        return self.num_elements + int(self.link_gate)
+
+    @property
     def has_penalty(self) -> bool:
         """The channel has a differentiable bit penalty, so a lambda or a bit budget applies
         (``discrete``)."""
@@ -140,8 +208,9 @@ class ChannelConfig:
     @property
     def deployable(self) -> bool:
         """A deployed agent can run it alone: its symbols need no draw but the dither
-        (``discrete``, ``continuous``, ``off``; ``reinforced`` samples inside the channel)."""
-        return not self.samples_symbols
+        (``discrete``, ``continuous``, ``off``; ``reinforced`` samples inside the channel), and
+        its receivers no rule the runtime does not carry yet (``on_silence = "hold"``)."""
+        return not self.samples_symbols and not self.holds
 
     @property
     def code_obj(self) -> Code | FittedCode:
@@ -162,14 +231,42 @@ class ChannelConfig:
         of its codewords (``channel.expected_bits``)."""
         return code_penalty(z, self.levels, self.code_obj)
 
+    def link_penalty(self, z: jax.Array, code: Code | FittedCode | None = None) -> jax.Array:
+        """The differentiable cost of each link of signals ``z`` (..., C') -> (...), in the bits
+        the channel prices (``prices``): the sum of :meth:`penalty` over the link's elements,
+        or the link's exact expected packet bits; with ``link_gate`` (the gate ``g`` last in
+        ``z``), ``g`` times that, the link's expected cost. ``code``: price in this code
+        instead of ``code_obj`` (the plug-in layer's)."""
+        code = self.code_obj if code is None else code
+        gate = None
+        if self.link_gate:
+            z, gate = z[..., :-1], z[..., -1]
+        if self.prices == "wire":
+            cost = expected_wire_bits(z, self.levels, code.wire_lengths(z.shape[-1]))
+        else:
+            cost = code_penalty(z, self.levels, code).sum(-1)
+        return cost if gate is None else gate * cost
+
     def max_bits_per_step(self, num_agents: int) -> int:
-        """The most payload bits a team of ``num_agents`` can send in one step: every element of
-        every link at the code's longest codeword."""
+        """The most bits (in the count of ``prices``) a team of ``num_agents`` can send in one
+        step: every element of every link at the code's longest codeword, and for ``wire``
+        each link's whole packet."""
         code = self.code_obj
         if code.name == "fitted":
             code = Code("paper", self.levels)  # payload: the paper's count
+        links = num_agents * (num_agents - 1)
+        if self.prices == "wire":
+            longest = int(code.wire_lengths(self.num_elements).max())
+            body = self.num_elements * (1 + longest)
+            return links * (8 * (-(-body // 8)) + 32)
         per_element = code.max_paper_length if code.name == "paper" else code.fixed_width
-        return num_agents * (num_agents - 1) * self.num_elements * per_element
+        return links * self.num_elements * per_element
+
+    @property
+    def counted_metric(self) -> str:
+        """The logged metric of the bits the channel prices: ``bits_per_step`` (payload) or
+        ``wire_bits_per_step``."""
+        return "wire_bits_per_step" if self.prices == "wire" else "bits_per_step"
 
 
 @functools.lru_cache(maxsize=8)

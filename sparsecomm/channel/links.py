@@ -33,7 +33,6 @@ from sparsecomm.channel.ecc import encode as ecc_encode
 from sparsecomm.channel.ecc import wire_bits as ecc_bits
 from sparsecomm.channel.fitted import FittedCode
 from sparsecomm.channel.noise import ON_DROP
-from sparsecomm.channel.penalty import code_penalty
 from sparsecomm.channel.permuted import packet_bits as permuted_bits
 from sparsecomm.channel.quantizer import (
     MAX_AGENTS,
@@ -104,23 +103,24 @@ def _check_dither_range(num_steps: int, num_agents: int) -> None:
 
 
 def step_dither(cfg: ChannelConfig, keys: jax.Array, t, num_agents: int):
-    """The dither of every link of a batch at step ``t``: (B, K, K-1, C) by sender slot,
+    """The dither of every link of a batch at step ``t``: (B, K, K-1, C') by sender slot,
     ``None`` unless the channel quantizes. Link i -> j of episode b uses ``dither_key(keys[b],
     t, i, j)``."""
     if not cfg.quantizes:
         return None
     senders, recipients = np.arange(num_agents)[:, None], others(num_agents)
-    return dither_links(keys, t, senders, recipients, cfg.num_elements)
+    return dither_links(keys, t, senders, recipients, cfg.signal_elements)
 
 
 def link_dither(cfg: ChannelConfig, keys: jax.Array, num_steps: int, num_agents: int):
-    """:func:`step_dither` of every step, (T, B, K, K-1, C), in one vectorised draw."""
+    """:func:`step_dither` of every step, (T, B, K, K-1, C'), in one vectorised draw (``C' =
+    cfg.signal_elements``: the link's gate draws its own)."""
     if not cfg.quantizes:
         return None
     _check_dither_range(num_steps, num_agents)
     senders, recipients = np.arange(num_agents)[:, None], others(num_agents)
     steps = jnp.arange(num_steps)[:, None]
-    return dither_links(keys, steps, senders, recipients, cfg.num_elements)
+    return dither_links(keys, steps, senders, recipients, cfg.signal_elements)
 
 
 # -- the sender side ------------------------------------------------------------------------
@@ -147,6 +147,11 @@ class Sent(NamedTuple):
     """(..., K) float32: log-probability of each sender's symbols (``samples_symbols``; else 0)."""
     live: jax.Array | None
     """(..., K, K-1) bool: the links that existed (``None``: all of them)."""
+    speak: jax.Array | None = None
+    """(..., K, K-1) float32, with ``link_gate``: 1 where the link's gate opened, else 0, with
+    the straight-through gradient of its probability ``g``; ``z_hat`` is then the message the
+    link would carry, and :func:`receive` mixes it with what a silent link delivers. ``None``:
+    no gate."""
 
 
 def transmit(
@@ -164,8 +169,9 @@ def transmit(
 
     Args:
       cfg: the channel.
-      z: (..., K, K-1, C) signals in [0, 1] by sender slot.
-      u: (..., K, K-1, C) their dither (:func:`link_dither`); a quantizing channel needs it.
+      z: (..., K, K-1, C') signals in [0, 1] by sender slot (``C' = cfg.signal_elements``:
+        with ``link_gate`` the link's gate last).
+      u: (..., K, K-1, C') their dither (:func:`link_dither`); a quantizing channel needs it.
       keys: (...) the episodes' channel keys, and ``t`` the step: a channel that samples its
         symbols draws them with ``dither_key(keys, t, i, j)``.
       prev: (..., K, K-1, C) each link's symbols at the previous step (``Sent.symbols``; a
@@ -179,6 +185,7 @@ def transmit(
     """
     code = cfg.code_obj if code is None else code
     lead, c = z.shape[:-1], z.shape[-1]
+    speak = None
     if live is not None:
         z = jnp.where(live[..., None], z, 0.0)
     no_log_prob = jnp.zeros(lead[:-1], jnp.float32)
@@ -206,18 +213,28 @@ def transmit(
         else:
             if u is None:
                 raise ValueError("ChannelConfig.mode 'discrete' needs the links' dither u")
+            penalty = cfg.link_penalty(z, code)
+            if cfg.link_gate:  # the last element opens the link: 1 with probability g
+                z, g, u, u_gate = z[..., :-1], z[..., -1], u[..., :-1], u[..., -1]
+                opens = jnp.clip(jnp.floor(g + u_gate + 0.5), 0.0, 1.0)
+                speak = g + jax.lax.stop_gradient(opens - g)
             m, z_hat = quantize_dithered(z, u, cfg.levels)
+            if cfg.link_gate:  # a closed link sends nothing: every element null
+                m = jnp.where(opens[..., None] > 0, m, 0)
             log_prob = no_log_prob
+        c = z.shape[-1]
         payload = payload_bits(m, code).sum(-1).astype(jnp.float32)
         if cfg.code == "permuted":  # every link sends its C codewords, whatever they say
             wire = jnp.full(payload.shape, float(permuted_bits(c, cfg.levels)))
         else:
             wire = ecc_bits(wire_bits(m, code, prev=prev), cfg.ecc).astype(jnp.float32)
-        penalty = code_penalty(z, cfg.levels, code).sum(-1)
+        if cfg.samples_symbols:
+            penalty = cfg.link_penalty(z, code)
     if live is not None:
         z_hat = jnp.where(live[..., None], z_hat, 0.0)
         payload, wire, penalty = (jnp.where(live, x, 0.0) for x in (payload, wire, penalty))
-    return Sent(m.astype(jnp.int32), z_hat, penalty, payload, wire, log_prob, live)
+        speak = None if speak is None else jnp.where(live, speak, 0.0)
+    return Sent(m.astype(jnp.int32), z_hat, penalty, payload, wire, log_prob, live, speak)
 
 
 def _sample_symbols(cfg: ChannelConfig, keys: jax.Array, t, z: jax.Array):
@@ -257,6 +274,9 @@ class Received(NamedTuple):
     last: jax.Array | None
     """(..., C) float32: each link's last good reconstruction after this step (``None`` when
     :func:`receive` was given none)."""
+    news: jax.Array | None = None
+    """(...) float32, under ``on_silence = "hold"``: 1 where this step's message is news (the
+    link spoke and its packet arrived), 0 where it is held. ``None`` otherwise."""
 
 
 def null_message(cfg: ChannelConfig, u, like: jax.Array) -> jax.Array:
@@ -277,6 +297,8 @@ def receive(
     last=None,
     on_drop: str = "null",
     live=None,
+    speak=None,
+    silent=None,
 ) -> Received:
     """The receiver side: what each recipient reads of the links that reached it.
 
@@ -287,22 +309,29 @@ def receive(
         samples its symbols; or a **float** array, already the reconstruction (a
         ``continuous`` channel's values, or ``Sent.z_hat`` in a simulation, whose gradient it
         keeps). A channel that does not speak delivers 0.
-      u: (..., C) each link's dither (:func:`dither_links`), for a quantizing channel.
+      u: (..., C) each link's dither (:func:`dither_links`; a gate's is ignored), for a
+        quantizing channel.
       ok: (...) bool, the links whose packet arrived; default all. A missing one is the null
-        message (:func:`null_message`) or, with ``on_drop = "last"``, ``last``.
+        message (:func:`null_message`) or, with ``on_drop = "last"`` or ``cfg.holds``, ``last``.
       last: (..., C) each link's last good reconstruction (zeros before the first), needed with
-        ``on_drop = "last"``.
+        ``on_drop = "last"`` and ``cfg.holds``.
       on_drop: ``"null"`` or ``"last"`` (``channel.noise.ON_DROP``).
       live: (...) bool, the links that exist: the others deliver 0. Default: all.
+      speak: (...) float, ``Sent.speak`` of a gated channel: a closed link delivers what a
+        silent one does, mixed with the straight-through gradient of its gate.
+      silent: (...) bool, the links that sent nothing (``Sent.wire_bits == 0``, or no packet
+        on a real network); under ``cfg.holds`` they deliver ``last``.
 
     Returns:
-      :class:`Received`: the messages and each link's updated last good reconstruction.
+      :class:`Received`: the messages, each link's updated last good reconstruction, and under
+      ``cfg.holds`` which messages are news.
     """
     if on_drop not in ON_DROP:
         raise ValueError(f"on_drop must be one of {ON_DROP}, got {on_drop!r}")
-    if on_drop == "last" and ok is not None and last is None:
-        raise ValueError("receive with on_drop 'last' needs each link's last reconstruction")
+    if last is None and (cfg.holds or (on_drop == "last" and ok is not None)):
+        raise ValueError("receive with on_drop 'last' or on_silence 'hold' needs `last`")
     message = jnp.asarray(message)
+    u = None if u is None else u[..., : message.shape[-1]]
     if not cfg.speaks:
         got = jnp.zeros(message.shape, jnp.float32)
     elif jnp.issubdtype(message.dtype, jnp.integer):  # symbols: rebuild them
@@ -310,14 +339,29 @@ def receive(
         got = (m - u) / cfg.levels if cfg.quantizes else m / cfg.levels
     else:
         got = message
+    spoke = None  # (...) bool: the link sent something
+    if speak is not None:  # a closed gate: what a silent link delivers
+        base = last if cfg.holds else null_message(cfg, u, got)
+        got = base + speak[..., None] * (got - base)
+        spoke = speak > 0
+    elif silent is not None:
+        spoke = ~silent
+        if cfg.holds:
+            got = jnp.where(spoke[..., None], got, last)
+    news = spoke if ok is None else (ok if spoke is None else ok & spoke)
     if ok is not None:
-        instead = last if on_drop == "last" else null_message(cfg, u, got)
+        instead = last if on_drop == "last" or cfg.holds else null_message(cfg, u, got)
         got = jnp.where(ok[..., None], got, instead)
-        if last is not None:
-            last = jnp.where(ok[..., None], got, last)
+    if cfg.holds:  # the last message the link did send, and that arrived
+        last = got if news is None else jnp.where(news[..., None], got, last)
+    elif last is not None and ok is not None:  # the last packet that arrived
+        last = jnp.where(ok[..., None], got, last)
     if live is not None:
         got = jnp.where(live[..., None], got, 0.0)
-    return Received(got, last)
+    held = None
+    if cfg.holds:
+        held = jnp.ones(got.shape[:-1], jnp.float32) if news is None else news.astype(jnp.float32)
+    return Received(got, last, held)
 
 
 # -- one link's packet on a real network ----------------------------------------------------

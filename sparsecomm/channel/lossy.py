@@ -4,7 +4,8 @@
 and any flipped bit failing the CRC-32), holds what is late in a delay line, and under
 ``code = "permuted"`` corrupts symbols instead of losing packets (``channel.permuted``). What a
 receiver then makes of a missing packet is :func:`sparsecomm.channel.links.receive`'s one rule,
-applied by the caller with the ``ok`` flags returned here and the links' ``last`` state.
+applied by the caller with the ``ok`` flags returned here (and the links' last messages, which
+the caller keeps).
 
 Its keys come from ``fold_in(key, 7)``, outside the rollout's six splits of the batch key, so a
 clean channel keeps every other draw, and results, bit for bit.
@@ -27,8 +28,6 @@ class LinkState(NamedTuple):
     """What the noisy links carry from one step to the next, links ``(B, K, K-1)`` by sender
     slot and ``D = noise.delay``."""
 
-    last: jax.Array
-    """(B, K, K-1, C) float32: each link's last good reconstruction (zeros before the first)."""
     bad: jax.Array
     """(B, K, K-1) bool: each link's Gilbert-Elliott burst state."""
     queue: jax.Array
@@ -48,7 +47,6 @@ class LossyLinks:
         links = (num_envs, num_agents, num_agents - 1)
         c, d = cfg.num_elements, self.noise.delay
         self.init = LinkState(
-            last=jnp.zeros((*links, c), jnp.float32),
             bad=initial_bad(k_bad, self.noise, links),
             queue=jnp.zeros((num_envs, d, *links[1:], c), jnp.float32),
             queue_ok=jnp.zeros((num_envs, d, *links[1:]), bool),

@@ -50,7 +50,8 @@ def check_deployable(config) -> None:
         deployable = [m for m in channel.CHANNEL_MODES if channel.ChannelConfig(m).deployable]
         raise ValueError(
             f"Deploy: the team's ChannelConfig.mode must be one of {deployable} (a mode whose "
-            f"symbols need no draw but the shared dither), got {config.channel.mode!r}"
+            f"symbols need no draw but the shared dither) and its on_silence 'null', got mode "
+            f"{config.channel.mode!r}, on_silence {config.channel.on_silence!r}"
         )
     if config.env.num_agents > MAX_AGENTS:
         raise ValueError(f"Deploy: at most {MAX_AGENTS} agents, got {config.env.num_agents}")
@@ -115,7 +116,7 @@ class StepOut(NamedTuple):
     carry: jax.Array  # (H,) its new GRU state
     action: jax.Array  # () int32
     symbols: jax.Array  # (K-1, C) int32 symbols of its links, by slot (zeros unless discrete)
-    signal: jax.Array  # (K-1, C) float32 z (the ``continuous`` mode sends it)
+    signal: jax.Array  # (K-1, C') float32 z (the ``continuous`` mode sends it; C' with a gate)
     payload: jax.Array  # (K-1,) payload bits of each link (the library's count)
     wire: jax.Array  # (K-1,) bits of each link's packet (the library's count)
 
@@ -142,7 +143,7 @@ def agent_step(team, cfg: ChannelConfig, greedy: bool):
         recipients = jnp.asarray(channel.others(k))[i]
         u = None
         if cfg.quantizes:
-            u = channel.dither_links(chan_key, t, i, recipients, cfg.num_elements)[None]
+            u = channel.dither_links(chan_key, t, i, recipients, cfg.signal_elements)[None]
         sent = channel.transmit(cfg, z[0, i][None], u, prev=prev[None])
         return StepOut(
             carry[0, i],
