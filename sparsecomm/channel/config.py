@@ -130,22 +130,17 @@ class ChannelConfig:
             raise _bad("bit_cost", self.bit_cost, "finite and >= 0")
         if not isinstance(self.link_gate, bool):
             raise _bad("link_gate", self.link_gate, "True or False")
-        if self.link_gate and (self.mode != "discrete" or self.noise.delay):
-            raise _bad(
-                "link_gate",
-                self.link_gate,
-                f"False unless mode is 'discrete' and noise.delay 0 (got mode {self.mode!r}, "
-                f"delay {self.noise.delay})",
-            )
         if self.on_silence not in ON_SILENCE:
             raise _bad("on_silence", self.on_silence, f"one of {ON_SILENCE}")
-        if self.on_silence == "hold" and (self.mode != "discrete" or self.noise.delay):
-            raise _bad(
-                "on_silence",
-                self.on_silence,
-                f"'null' unless mode is 'discrete' and noise.delay 0 (got mode {self.mode!r}, "
-                f"delay {self.noise.delay})",
-            )
+        for name, on in (("link_gate", self.link_gate), ("on_silence", self.holds)):
+            if on and (self.mode != "discrete" or self.noise.delay):
+                raise _bad(
+                    name,
+                    getattr(self, name),
+                    f"{'False' if name == 'link_gate' else repr('null')} unless mode is "
+                    f"'discrete' and noise.delay 0 (got mode {self.mode!r}, delay "
+                    f"{self.noise.delay})",
+                )
         if self.prices not in PRICES:
             raise _bad("prices", self.prices, f"one of {PRICES}")
         if self.prices == "wire" and (
