@@ -1,6 +1,7 @@
 """Decentralised execution (issue 19): the datagram format, the fault layer, the config checks,
 and real deployments: a world process and one process per agent over UDP on loopback."""
 
+import dataclasses
 import json
 import os
 import signal
@@ -171,7 +172,9 @@ def test_a_missing_packet_is_the_null_message_or_the_last_one():
 # -- real deployments -----------------------------------------------------------------------
 
 
-def _team(folder: Path, num_agents: int = 3, max_steps: int = 10, radius: float = 0.45) -> Path:
+def _team(
+    folder: Path, num_agents: int = 3, max_steps: int = 10, radius: float = 0.45, channel_cfg=None
+) -> Path:
     """An exported team of untrained actors: enough to test that deploy plays eval's episodes
     (their messages are busy, the goals close enough that some episodes succeed)."""
     env = NavConfig(
@@ -182,6 +185,8 @@ def _team(folder: Path, num_agents: int = 3, max_steps: int = 10, radius: float 
         position_limit=0.75,
     )
     config = RLConfig(env=env, seed=11)
+    if channel_cfg is not None:
+        config = dataclasses.replace(config, channel=channel_cfg)
     _, team = make_team(config)
     shapes = jax.eval_shape(team.init, jax.random.key(0))["actor"]  # traced, not compiled
     rng = np.random.default_rng(3)
@@ -231,6 +236,18 @@ def test_deploy_matches_sparsecomm_eval(tmp_path):
     assert row["episode_length"] == pytest.approx(ev["episode_length"], rel=1e-6)
     assert row["bits_per_step"] == pytest.approx(ev["bits_per_step"], rel=1e-5)
     assert row["wire_bits_per_step"] == pytest.approx(ev["wire_bits_per_step"], rel=1e-5)
+
+
+@pytest.mark.slow
+def test_a_team_with_link_gates_deployed_plays_evals_episodes(tmp_path):
+    """Gated links (``ChannelConfig.link_gate``): a closed link's symbols are all null on the
+    wire and in the simulation alike, so deploy still plays eval's episodes exactly."""
+    team = _team(tmp_path / "team", channel_cfg=channel.ChannelConfig(link_gate=True))
+    (row,) = deploy(Deploy(run=team, episodes=4, out=tmp_path / "deploy"))["runs"]
+    sim = row["simulation"]
+    assert sim["identical_episodes"] == 4, sim["different_episodes"]
+    assert row["wire_bits_per_step"] == pytest.approx(sim["wire_bits_per_step"], rel=1e-12)
+    assert 0 < row["packet_bits_per_step"] < row["datagram_bits_per_step"]
 
 
 @pytest.mark.slow

@@ -342,8 +342,11 @@ def receive(
     spoke = None  # (...) bool: the link sent something
     if speak is not None:  # a closed gate: what a silent link delivers
         base = last if cfg.holds else null_message(cfg, u, got)
-        got = base + speak[..., None] * (got - base)
         spoke = speak > 0
+        # exactly the message or the base (as a real receiver rebuilds them), with the gate's
+        # straight-through gradient: the message it would carry minus what silence delivers
+        through = (speak - jax.lax.stop_gradient(speak))[..., None] * (got - base)
+        got = jnp.where(spoke[..., None], got, base) + through
     elif silent is not None:
         spoke = ~silent
         if cfg.holds:
