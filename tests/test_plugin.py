@@ -173,10 +173,14 @@ def test_batches_vmap_jit_and_traced_masks_agree():
     traced = jax.jit(lambda k, z, t, m: channel.send(k, z, m, t=t))(keys, z, t, mask)
     one = channel.send(keys[1, 2], z[1, 2], SPARSE, t=5)
     for a, b, c in zip(batched, mapped, traced, strict=True):
+        if a is None:  # news: only with ``last``
+            assert b is None and c is None
+            continue
         _same(a, b)
         _same(a, c)
     for a, b in zip(batched, one, strict=True):
-        _same(a[1, 2], b)
+        if a is not None:
+            _same(a[1, 2], b)
     # Raw uint32 keys, and one key shared by the batch.
     raw = jax.random.key_data(keys)
     np.testing.assert_array_equal(channel.send(raw, z, SPARSE, t=t).symbols, batched.symbols)
@@ -274,3 +278,31 @@ if __name__ == "__main__":
     start = time.perf_counter()
     exec(compile(tutorial_code(), str(DOC), "exec"), {"__name__": "plugin_tutorial"})
     print(f"tutorial: {time.perf_counter() - start:.1f} s", file=sys.stderr)
+
+
+def test_with_the_last_inbox_a_silent_link_holds_its_last_message():
+    """``last`` (the previous inbox): a link that sends nothing delivers its last message and
+    is flagged as not news, in ``send`` and ``reconstruct`` alike (the channel's hold rule)."""
+    key = jax.random.key(3)
+    z = _signals(4, (K, K, C))
+    z = z.at[0, 1].set(0.0).at[2, 0].set(0.0)  # links 0 -> 1 and 2 -> 0 fall silent
+    last = jax.random.uniform(jax.random.key(5), (K, K, C))
+    msgs = channel.send(key, z, RING, t=2, last=last)
+    plain = channel.send(key, z, RING, t=2)
+    mask = np.asarray(RING.mask)
+    silent = ~np.asarray(plain.symbols != 0).any(-1) & mask  # (sender, recipient)
+    assert silent[0, 1] or silent[2, 0]
+    inbox, news = np.asarray(msgs.inbox), np.asarray(msgs.news)
+    for i, j in zip(*np.nonzero(mask), strict=True):
+        if silent[i, j]:
+            np.testing.assert_array_equal(inbox[j, i], np.asarray(last)[j, i])
+            assert news[j, i] == 0.0
+        else:
+            np.testing.assert_array_equal(inbox[j, i], np.asarray(plain.inbox)[j, i])
+            assert news[j, i] == 1.0
+    assert not news[~mask.T].any() and not inbox[~mask.T].any()
+    again = channel.reconstruct(key, msgs.symbols, RING, t=2, last=last)
+    np.testing.assert_allclose(again, msgs.inbox, atol=1e-6)
+    assert plain.news is None
+    with pytest.raises(ValueError, match="last"):
+        channel.send(key, z, RING, t=2, last=last[0])

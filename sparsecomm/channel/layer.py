@@ -88,6 +88,10 @@ class Messages(NamedTuple):
     :], code))`` when computed on the host."""
     mask: jax.Array
     """(..., K, K) bool: the links that existed (the routing, diagonal cleared)."""
+    news: jax.Array | None = None
+    """(..., K, K) float32 by **recipient** then sender, with ``last`` given to :func:`send`: 1
+    where the link spoke (its inbox entry is news), 0 where it was silent and its last message
+    is held (``ChannelConfig.on_silence = "hold"``). ``None`` otherwise."""
 
 
 def _check_static_int(value, name: str, lo: int, hi: int) -> None:
@@ -126,6 +130,7 @@ def send(
     gate: str | None = None,
     broadcast: bool = False,
     prev: jax.Array | None = None,
+    last: jax.Array | None = None,
 ) -> Messages:
     """Send every agent's signal over the links ``routing`` allows, through the channel.
 
@@ -150,6 +155,10 @@ def send(
         own packet with its own dither.
       prev: ``(..., K, K, C)`` each link's symbols at the previous step, for a fitted code's wire
         bits (default all nulls; the other codes ignore it).
+      last: ``(..., K, K, C)`` by recipient then sender, the inbox of the previous step
+        (``Messages.inbox``; zeros at the first): a link that sends nothing (every symbol null)
+        then delivers its last message instead of the null one, and ``Messages.news`` says which
+        entries are news (the channel's ``on_silence = "hold"``). Default: the paper's null.
 
     Returns:
       :class:`Messages`. Values of ``z`` outside [0, 1] are a ``ValueError`` when ``z`` is
@@ -178,20 +187,33 @@ def send(
     mask = routing_mask(routing, k, batch)
     key, t = _episode_keys(key, t, batch)
     check_unit_interval(jnp.where(mask[..., None], z, 0.0))  # concrete z only
-    return _send(key, z, mask, t, prev, levels, code)
+    last = _check_last(last, z.shape)
+    return _send(key, z, mask, t, prev, last, levels, code)
 
 
-@functools.partial(jax.jit, static_argnums=(5, 6))
-def _send(key, z, mask, t, prev, levels: int, code) -> Messages:
+def _check_last(last, shape) -> jax.Array | None:
+    if last is None:
+        return None
+    last = jnp.asarray(last, jnp.float32)
+    if last.shape != tuple(shape):
+        raise ValueError(
+            f"last must be the previous inbox, (..., K, K, C) = {tuple(shape)}, got {last.shape}"
+        )
+    return last
+
+
+@functools.partial(jax.jit, static_argnums=(6, 7))
+def _send(key, z, mask, t, prev, last, levels: int, code) -> Messages:
     """:func:`send` once its arguments are checked (one compiled program, also when eager): the
     channel's own :func:`~sparsecomm.channel.links.transmit` on the links by sender slot."""
     k, c = z.shape[-2], z.shape[-1]
     live = slots(mask)
     u = dither_links(key, t, np.arange(k)[:, None], others(k), c)
     prev = None if prev is None else slots(prev, 1)
-    sent = transmit(_discrete(levels), slots(z, 1), u, prev=prev, live=live, code=code)
+    cfg = _discrete(levels, last is not None)
+    sent = transmit(cfg, slots(z, 1), u, prev=prev, live=live, code=code)
     z_hat = pairs(sent.z_hat, 1)
-    inbox = jnp.swapaxes(z_hat, -3, -2)
+    inbox, news = _received(cfg, sent.z_hat, u, last, live, sent.wire_bits == 0)
     heard = mask.sum(-2).astype(jnp.float32)  # senders of each recipient
     mean = inbox.sum(-2) / jnp.maximum(heard, 1.0)[..., None]
     return Messages(
@@ -203,18 +225,37 @@ def _send(key, z, mask, t, prev, levels: int, code) -> Messages:
         pairs(sent.payload_bits.astype(jnp.int32)),
         pairs(sent.wire_bits.astype(jnp.int32)),
         mask,
+        news,
     )
 
 
+def _received(cfg, message, u, last, live, silent):
+    """The channel's receiver side on links by sender slot, as the layer returns it: the inbox
+    ``(..., K, K, C)`` by recipient then sender, and under ``hold`` which entries are news."""
+    if last is not None:  # the previous inbox, by recipient: by sender slot
+        last = slots(jnp.swapaxes(last, -3, -2), 1)
+    got = receive(cfg, message, u, last=last, live=live, silent=silent if cfg.holds else None)
+    inbox = jnp.swapaxes(pairs(got.z_hat, 1), -3, -2)
+    news = None if got.news is None else jnp.swapaxes(pairs(got.news * live), -2, -1)
+    return inbox, news
+
+
 @functools.lru_cache(maxsize=64)
-def _discrete(levels: int) -> ChannelConfig:
+def _discrete(levels: int, hold: bool = False) -> ChannelConfig:
     """The channel the layer runs: the paper's quantizer with ``levels`` (bits are counted in
-    the code the caller gives :func:`send`)."""
-    return ChannelConfig(levels=levels)
+    the code the caller gives :func:`send`), holding silent links' last messages with
+    ``hold``."""
+    return ChannelConfig(levels=levels, on_silence="hold" if hold else "null")
 
 
 def reconstruct(
-    key: jax.Array, symbols: jax.Array, routing: Routing | jax.Array, *, t, levels: int = 15
+    key: jax.Array,
+    symbols: jax.Array,
+    routing: Routing | jax.Array,
+    *,
+    t,
+    levels: int = 15,
+    last: jax.Array | None = None,
 ) -> jax.Array:
     """Receiver side: every recipient's inbox rebuilt from the symbols alone and the shared key.
 
@@ -222,6 +263,8 @@ def reconstruct(
     packets); ``key``, ``routing``, ``t`` and ``levels`` as given to :func:`send`. Returns
     ``(..., K, K, C)`` by recipient then sender, ``(m - u) / levels`` on the links that exist
     and 0 elsewhere: ``Messages.inbox``'s values (up to float rounding), without its gradient.
+    With ``last`` (the previous inbox), a link whose symbols are all null delivers its last
+    message, as :func:`send` with ``last``.
     """
     levels = check_levels(levels)
     symbols = jnp.asarray(symbols)
@@ -241,14 +284,16 @@ def reconstruct(
         if lo < 0 or hi > levels:
             raise ValueError(f"symbols must lie in [0, {levels}], got values in [{lo}, {hi}]")
     key, t = _episode_keys(key, t, batch)
-    return _reconstruct(key, symbols, mask, t, levels)
+    last = _check_last(last, symbols.shape)
+    return _reconstruct(key, symbols, mask, t, last, levels)
 
 
-@functools.partial(jax.jit, static_argnums=(4,))
-def _reconstruct(key, symbols, mask, t, levels: int) -> jax.Array:
+@functools.partial(jax.jit, static_argnums=(5,))
+def _reconstruct(key, symbols, mask, t, last, levels: int) -> jax.Array:
     """:func:`reconstruct` once its arguments are checked: the channel's own
     :func:`~sparsecomm.channel.links.receive` on the links by sender slot."""
     k, c = symbols.shape[-2], symbols.shape[-1]
     u = dither_links(key, t, np.arange(k)[:, None], others(k), c)
-    got = receive(_discrete(levels), slots(symbols, 1), u, live=slots(mask))
-    return jnp.swapaxes(pairs(got.z_hat, 1), -3, -2)
+    m = slots(symbols, 1)
+    cfg = _discrete(levels, last is not None)
+    return _received(cfg, m, u, last, slots(mask), ~(m != 0).any(-1))[0]
