@@ -73,9 +73,10 @@ def over_links(fn, key: jax.Array, t, sender, recipient, *arrays):
     j = jnp.tile(jnp.broadcast_to(recipient, links).reshape(m), n)
     steps = jnp.repeat(jnp.broadcast_to(t, batch).reshape(n), m)
     flat = [a.reshape(n * m, *a.shape[len(batch) + len(links) :]) for a in arrays]
-    if kb:  # one key per batch entry: gather it for each of its links
-        which = np.broadcast_to(np.arange(math.prod(kb)).reshape(kb), batch).reshape(n)
-        key = key.reshape(math.prod(kb), *key.shape[len(kb) :])[np.repeat(which, m)]
+    if kb:  # one key per batch entry, broadcast to each of its links
+        tail = key.shape[len(kb) :]  # (2,) for a raw uint32 key, () for a typed one
+        key = jnp.broadcast_to(key, (*batch, *tail)).reshape(*batch, 1, *tail)
+        key = jnp.broadcast_to(key, (*batch, m, *tail)).reshape(n * m, *tail)
         key_axis = 0
     else:
         key_axis = None
