@@ -10,6 +10,7 @@ shared-key dither. Both update ``--num-envs`` episodes of 256 steps per call; th
 alternated and the median of ``--repeats`` is reported, compile time excluded.
 
     python benchmarks/naive_step.py --num-envs 64 256            # CPU
+    python benchmarks/naive_step.py --num-envs 64 --channel.prices wire --channel.link-gate
     python benchmarks/naive_step.py --num-envs 256 2560 10240    # GPU
 """
 
@@ -25,7 +26,7 @@ import optax
 import tyro
 
 from sparsecomm import channel
-from sparsecomm.configs import RLConfig
+from sparsecomm.configs import ChannelConfig, RLConfig
 from sparsecomm.rl import make_train
 
 
@@ -37,6 +38,10 @@ class Args:
     """Timed calls of each step, alternated."""
     seed: int = 0
     """PRNG seed of both."""
+    channel: ChannelConfig = ChannelConfig()
+    """sparsecomm's channel (the naive step keeps the default one, the common reference), e.g.
+    ``--channel.prices wire --channel.link-gate --channel.on-silence hold`` for the price of
+    speaking (docs/wire.md)."""
 
 
 def make_naive(config: RLConfig):
@@ -106,7 +111,7 @@ def main(args: Args) -> list[dict]:
         config = RLConfig(num_envs=n)
         steps = n * config.env.max_steps
         naive_init, naive_update = make_naive(config)
-        ours = make_train(config)
+        ours = make_train(dataclasses.replace(config, channel=args.channel))
         fns = {
             "naive": (jax.jit(naive_update), naive_init(jax.random.key(args.seed))),
             "sparsecomm": (jax.jit(ours.update), ours.init(jax.random.key(args.seed), 0.0)),

@@ -47,7 +47,8 @@ def expected_bits(z: jax.Array, levels: int, lengths) -> jax.Array:
     return (1.0 - frac) * table[k, lo] + frac * table[k, hi]
 
 
-_ROLL = (np.arange(8)[:, None] - np.arange(8)[None, :]) % 8  # [r, s]: (r - s) mod 8
+_COS8 = jnp.asarray(np.cos(2 * np.pi * np.arange(8) / 8), jnp.float32)
+_SIN8 = jnp.asarray(np.sin(2 * np.pi * np.arange(8) / 8), jnp.float32)
 
 
 def expected_wire_bits(
@@ -67,8 +68,9 @@ def expected_wire_bits(
 
     Element k's symbol is ``floor(levels z_k)`` or one more (probability ``f_k``, the
     fractional part), independently across elements (each has its own dither), so ``p0`` is the
-    product of ``P(m_k = 0) = max(0, 1 - levels z_k)`` and the padding's distribution is the
-    circular convolution, modulo 8, of the elements' codeword lengths. The cliff: ``p0`` is 0,
+    product of ``P(m_k = 0) = max(0, 1 - levels z_k)`` and the padding's distribution, that of
+    the codeword bits modulo 8, is the product of the elements' characteristic functions on the
+    8 residues. The cliff: ``p0`` is 0,
     with no gradient, as soon as one element has ``levels z_k >= 1``.
     """
     levels = check_levels(levels)
@@ -83,17 +85,29 @@ def expected_wire_bits(
     len_lo, len_hi = table[k, lo], table[k, hi]
     codewords = ((1.0 - f) * len_lo + f * len_hi).sum(-1)
     p0 = jnp.prod(jnp.where(lo == 0, 1.0 - f, 0.0), -1)
-    # the distribution of S mod 8, element by element
-    dist = jax.nn.one_hot(jnp.zeros(x.shape[:-1], jnp.int32), 8)
+    # E[pad(C + S)] from the characteristic function of S mod 8, Phi(w) = E[exp(-2 pi i w S /
+    # 8)]: the product over elements of each one's (two symbols, two lengths), in real
+    # arithmetic. Then E[pad] = sum_w Phi(w) Q(w), Q the inverse DFT of the padding table; S is
+    # real, so Phi(8 - w) is Phi(w)'s conjugate and w = 1..4 suffice (Phi(0) = 1).
+    omega = np.arange(1, 5)
+    re, im = jnp.ones((*x.shape[:-1], 4)), jnp.zeros((*x.shape[:-1], 4))
     for j in range(c):
-        one = (1.0 - f[..., j, None]) * jax.nn.one_hot(len_lo[..., j] % 8, 8) + f[
-            ..., j, None
-        ] * jax.nn.one_hot(len_hi[..., j] % 8, 8)
-        dist = jnp.einsum("...s,...rs->...r", dist, one[..., _ROLL])
+        lo_turn = (len_lo[..., j, None] * omega) % 8  # (..., 4): w * length mod 8, in eighths
+        hi_turn = (len_hi[..., j, None] * omega) % 8
+        fj = f[..., j, None]
+        a = (1.0 - fj) * _COS8[lo_turn] + fj * _COS8[hi_turn]
+        b = -((1.0 - fj) * _SIN8[lo_turn] + fj * _SIN8[hi_turn])
+        re, im = re * a - im * b, re * b + im * a
     frame = c + 32 if frame_bits is None else frame_bits
-    pad = jnp.asarray((-(c + np.arange(8))) % 8, jnp.float32)
-    speaking_dist = dist - p0[..., None] * jax.nn.one_hot(0, 8)  # S = 0 when all are null
-    return (1.0 - p0) * frame + codewords + (speaking_dist * pad).sum(-1)
+    r = np.arange(8)
+    pad = (-(c + r)) % 8  # padding after a body of C + r bits, r = S mod 8
+    q_re = (pad * np.cos(2 * np.pi * np.outer(omega, r) / 8)).sum(1) / 8
+    q_im = (pad * np.sin(2 * np.pi * np.outer(omega, r) / 8)).sum(1) / 8
+    twice = np.array([2.0, 2.0, 2.0, 1.0])  # w and 8 - w, and w = 4 once
+    q_re, q_im = jnp.asarray(twice * q_re, jnp.float32), jnp.asarray(twice * q_im, jnp.float32)
+    mean_pad = pad.mean()  # Phi(0) Q(0)
+    padding = mean_pad + (re * q_re - im * q_im).sum(-1) - p0 * pad[0]  # S = 0 if all null
+    return (1.0 - p0) * frame + codewords + padding
 
 
 def code_penalty(z: jax.Array, levels: int, code) -> jax.Array:
