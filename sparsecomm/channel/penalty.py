@@ -47,8 +47,8 @@ def expected_bits(z: jax.Array, levels: int, lengths) -> jax.Array:
     return (1.0 - frac) * table[k, lo] + frac * table[k, hi]
 
 
-_COS8 = jnp.asarray(np.cos(2 * np.pi * np.arange(8) / 8), jnp.float32)
-_SIN8 = jnp.asarray(np.sin(2 * np.pi * np.arange(8) / 8), jnp.float32)
+_COS8 = np.cos(2 * np.pi * np.arange(8) / 8).astype(np.float32)  # numpy: no device at import
+_SIN8 = np.sin(2 * np.pi * np.arange(8) / 8).astype(np.float32)
 
 
 def expected_wire_bits(
@@ -90,13 +90,14 @@ def expected_wire_bits(
     # arithmetic. Then E[pad] = sum_w Phi(w) Q(w), Q the inverse DFT of the padding table; S is
     # real, so Phi(8 - w) is Phi(w)'s conjugate and w = 1..4 suffice (Phi(0) = 1).
     omega = np.arange(1, 5)
+    cos8, sin8 = jnp.asarray(_COS8), jnp.asarray(_SIN8)
     re, im = jnp.ones((*x.shape[:-1], 4)), jnp.zeros((*x.shape[:-1], 4))
     for j in range(c):
         lo_turn = (len_lo[..., j, None] * omega) % 8  # (..., 4): w * length mod 8, in eighths
         hi_turn = (len_hi[..., j, None] * omega) % 8
         fj = f[..., j, None]
-        a = (1.0 - fj) * _COS8[lo_turn] + fj * _COS8[hi_turn]
-        b = -((1.0 - fj) * _SIN8[lo_turn] + fj * _SIN8[hi_turn])
+        a = (1.0 - fj) * cos8[lo_turn] + fj * cos8[hi_turn]
+        b = -((1.0 - fj) * sin8[lo_turn] + fj * sin8[hi_turn])
         re, im = re * a - im * b, re * b + im * a
     frame = c + 32 if frame_bits is None else frame_bits
     r = np.arange(8)
