@@ -144,7 +144,9 @@ class Code:
         m = np.broadcast_to(np.arange(self.levels + 1), (num_elements, self.levels + 1))
         if self.name == "fixed":
             return np.where(m > 0, self.fixed_width, 0).astype(np.int32)
-        index = self.mapped(np.ascontiguousarray(m)) if self.remap else m
+        if self.remap and len(self.remap) != num_elements:
+            raise ValueError(f"a remapped code's links have {len(self.remap)} elements")
+        index = np.asarray(self.remap) if self.remap else m  # remap[k][m] for every m
         return (2 * np.floor(np.log2(index + 1))).astype(np.int32)
 
     @property
