@@ -1,6 +1,7 @@
 """The channel of SPEC sections 1-3: quantizer statistics, gradient, penalty bound, codes and
 wire format."""
 
+import itertools
 import math
 import zlib
 
@@ -213,7 +214,7 @@ def test_wire_bits_are_the_packet_sizes(name, crc):
 
 
 @pytest.mark.parametrize("mode", ["discrete", "continuous"])
-def test_transmit_counts_every_links_packet(mode):
+def test_transmit_counts_every_senders_frame(mode):
     cfg = channel.ChannelConfig(mode=mode, num_elements=10)
     b, k = 4, 3
     z = jax.random.uniform(jax.random.key(0), (b, k, k - 1, 10))
@@ -227,9 +228,18 @@ def test_transmit_counts_every_links_packet(mode):
         assert not m[0, 0, 0].any() and (m == 0).mean() > 0.5
     else:
         m = np.asarray(z)
-    code = cfg.code_obj
-    expect = [sum(8 * len(channel.encode(link, code)) for link in ep.reshape(-1, 10)) for ep in m]
-    np.testing.assert_array_equal(sent.wire_bits.sum((-2, -1)), expect)
+    frames = [[channel.encode_sender(cfg, row, row) for row in ep] for ep in m]
+    sizes = [[8 * len(f) for f in ep] for ep in frames]
+    np.testing.assert_array_equal(sent.wire_bits.sum(-1), sizes)
+    # each speaking link's datagram carries its sender's whole frame; a silent one nothing
+    speaking = np.asarray(sent.wire_bits) > 0
+    assert not speaking[0, 0, 0] and speaking.mean() > 0.5
+    np.testing.assert_array_equal(
+        sent.frame_bits, np.where(speaking, np.asarray(sent.wire_bits).sum(-1, keepdims=True), 0)
+    )
+    for ep, row in zip(frames, m, strict=True):  # and the frames decode to what was sent
+        for f, links in zip(ep, row, strict=True):
+            np.testing.assert_array_equal(channel.decode_sender(cfg, f, k - 1), links)
 
 
 symbol_arrays = st.integers(1, 1000).flatmap(
@@ -413,36 +423,75 @@ def test_inside_jit_out_of_range_z_is_clipped_not_checked():
 
 
 @pytest.mark.parametrize("name", ["paper", "fixed"])
-@pytest.mark.parametrize("scale", [0.02, 0.08, 1.0])
-def test_expected_wire_bits_match_the_encoders_mean_packet(name, scale):
-    """The differentiable price of speaking is the exact mean of the real packets' bits."""
+@pytest.mark.parametrize(
+    "links, check_bits, scale, gated",
+    [(1, 32, 0.02, False), (1, 8, 0.08, True), (3, 16, 0.08, True), (2, 0, 1.0, False)],
+)
+def test_expected_frame_bits_match_the_encoders_mean_frame(name, links, check_bits, scale, gated):
+    """The differentiable price of speaking is the exact mean of the real frames' bits."""
     levels, c, n = 15, 10, 4000
     code = channel.Code(name, levels)
-    rng = np.random.default_rng(int(scale * 100))
-    z = rng.uniform(0, scale, c).astype(np.float32) * (rng.random(c) < 0.6)
-    u = np.asarray(jax.random.uniform(jax.random.key(1), (n, c), minval=-0.5, maxval=0.5))
+    rng = np.random.default_rng(int(scale * 100) + links)
+    z = rng.uniform(0, scale, (links, c)).astype(np.float32) * (rng.random((links, c)) < 0.6)
+    g = rng.uniform(0.2, 0.9, links).astype(np.float32) if gated else None
+    u = np.asarray(jax.random.uniform(jax.random.key(1), (n, links, c), minval=-0.5, maxval=0.5))
     m = np.clip(np.floor(levels * z + u + 0.5), 0, levels).astype(np.int64)
-    bits = np.array([8 * len(channel.encode(link, code)) for link in m])
-    expect = float(channel.expected_wire_bits(jnp.asarray(z), levels, code.wire_lengths(c)))
+    if gated:  # a closed gate: every element null
+        m *= (rng.random((n, links)) < g)[..., None]
+    bits = np.array([8 * len(channel.encode_frame(f, code, check_bits=check_bits)) for f in m])
+    expect = float(
+        channel.expected_frame_bits(
+            jnp.asarray(z), levels, code.wire_lengths(c), check_bits, None if g is None else g
+        )
+    )
     se = max(bits.std() / np.sqrt(n), 1e-6)
     assert abs(bits.mean() - expect) < 4 * se + 1e-4, (bits.mean(), expect, se)
 
 
-def test_expected_wire_bits_gradient_matches_finite_differences_where_smooth():
+def test_expected_frame_bits_equal_the_exact_sum_over_every_outcome():
+    """Enumerating the 2^C symbol outcomes of one link gives the same expectation, to float
+    precision, with and without a gate."""
+    levels, c = 15, 6
+    code = channel.Code("paper", levels)
+    table = code.wire_lengths(c)
+    z = np.asarray([0.01, 0.05, 0.2, 0.0, 0.6, 0.03])
+    x = levels * z
+    lo, f = np.floor(x).astype(int), x - np.floor(x)
+    exact = 0.0
+    for up in itertools.product([0, 1], repeat=c):
+        p = np.prod(np.where(up, f, 1 - f))
+        exact += p * 8 * len(channel.encode_frame((lo + np.asarray(up))[None], code, check_bits=16))
+    got = channel.expected_frame_bits(jnp.asarray(z[None], jnp.float32), levels, table, 16)
+    np.testing.assert_allclose(float(got), exact, rtol=1e-5)
+    gated = channel.expected_frame_bits(jnp.asarray(z[None], jnp.float32), levels, table, 16, [0.3])
+    np.testing.assert_allclose(float(gated), 0.3 * exact, rtol=1e-5)
+
+
+def test_expected_frame_bits_gradient_matches_finite_differences_where_smooth():
     levels, c = 15, 4
     table = channel.Code("paper", levels).wire_lengths(c)
-    z = jnp.asarray([0.01, 0.03, 0.0, 0.05])  # all below 1 / levels: every element may be null
-    f = lambda z: channel.expected_wire_bits(z, levels, table)  # noqa: E731
-    grad = np.asarray(jax.grad(f)(z))
+    z = jnp.asarray([[0.01, 0.03, 0.0, 0.05]])  # below 1 / levels: every element may be null
+    f = lambda z: channel.expected_frame_bits(z, levels, table)  # noqa: E731
+    grad = np.asarray(jax.grad(f)(z))[0]
     h = 1e-3
     for k in range(c):
-        step = jnp.zeros(c).at[k].set(h)
+        step = jnp.zeros((1, c)).at[0, k].set(h)
         fd = (float(f(z + step)) - float(f(jnp.maximum(z - step, 0.0)))) / (2 * h if k != 2 else h)
         assert abs(grad[k] - fd) < 1e-2 * max(1.0, abs(fd)), (k, grad[k], fd)
     assert grad.min() > 0  # speaking costs more the likelier it is
     # the cliff: once one element is surely not null, the others' chance of silence is gone
-    cliff = np.asarray(jax.grad(f)(z.at[0].set(0.5)))
+    cliff = np.asarray(jax.grad(f)(z.at[0, 0].set(0.5)))[0]
     assert cliff[1] < grad[1]
+    # a gate's gradient is smooth: the frame's bits grow with the chance the link opens
+    zg = jnp.asarray([[0.5, 0.3, 0.0, 0.1], [0.2, 0.0, 0.0, 0.4]])
+    fg = lambda g: channel.expected_frame_bits(zg, levels, table, 8, g)  # noqa: E731
+    g = jnp.asarray([0.3, 0.6])
+    dg = np.asarray(jax.grad(fg)(g))
+    for j in range(2):
+        step = jnp.zeros(2).at[j].set(1e-3)
+        fd = (float(fg(g + step)) - float(fg(g - step))) / 2e-3
+        assert abs(dg[j] - fd) < 1e-2 * max(1.0, abs(fd)), (j, dg[j], fd)
+    assert dg.min() > 0
 
 
 def test_a_link_gate_opens_with_its_probability_and_a_closed_link_sends_nothing():
@@ -463,11 +512,17 @@ def test_a_link_gate_opens_with_its_probability_and_a_closed_link_sends_nothing(
         not np.asarray(sent.wire_bits)[closed].any()
         and not np.asarray(sent.payload_bits)[closed].any()
     )
-    # the penalty is the gate times the link's expected packet bits: its gradient in g is that price
-    price = channel.expected_wire_bits(z[..., :-1], cfg.levels, cfg.code_obj.wire_lengths(c))
-    np.testing.assert_allclose(sent.penalty, z[..., -1] * price, rtol=1e-5)
+    # the penalty is each sender's expected frame bits given its gates, shared by its links
+    table = cfg.code_obj.wire_lengths(c)
+
+    def frame(z):
+        return channel.expected_frame_bits(z[..., :-1], cfg.levels, table, 32, z[..., -1])
+
+    np.testing.assert_allclose(sent.penalty.sum(-1), frame(z), rtol=1e-5)
+    np.testing.assert_allclose(sent.penalty[..., 0], sent.penalty[..., 1], rtol=1e-6)
     grad = jax.grad(lambda z: channel.transmit(cfg, z, u).penalty.sum())(z)
-    np.testing.assert_allclose(grad[..., -1], price, rtol=1e-5)
+    np.testing.assert_allclose(grad, jax.grad(lambda z: frame(z).sum())(z), rtol=1e-5)
+    assert float(grad[..., -1].min()) > 0  # opening a gate always costs
     # straight-through: what a receiver reads moves with the gate by the message it would carry
     null = -u[..., :-1] / cfg.levels
     got = channel.receive(cfg, sent.z_hat, u, speak=sent.speak).z_hat
@@ -521,8 +576,8 @@ def test_wire_prices_and_gates_need_the_discrete_channel():
         channel.ChannelConfig(mode="reinforced", link_gate=True)
     with pytest.raises(ValueError, match="ChannelConfig.on_silence"):
         channel.ChannelConfig(on_silence="hold", noise=channel.NoiseConfig(delay=1))
-    assert not channel.ChannelConfig(on_silence="hold").deployable
+    assert channel.ChannelConfig(on_silence="hold").deployable
     wire = channel.ChannelConfig(prices="wire")
     assert wire.counted_metric == "wire_bits_per_step"
-    longest = 8 * len(channel.encode(np.full(10, 15), "paper"))  # every element's longest codeword
-    assert wire.max_bits_per_step(3) == 6 * longest
+    loudest = np.full((2, 10), 15)  # both links of a sender, every element's longest codeword
+    assert wire.max_bits_per_step(3) == 3 * 8 * len(channel.encode_frame(loudest, "paper"))

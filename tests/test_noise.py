@@ -422,10 +422,12 @@ def test_channel_with_hamming_counts_the_redundancy_in_its_wire_bits():
     u = channel.dither(jax.random.key(2), z.shape)
     plain = channel.transmit(ChannelConfig(), z, u)
     coded = channel.transmit(ChannelConfig(ecc="hamming74"), z, u)
-    np.testing.assert_array_equal(coded.wire_bits, ecc.wire_bits(plain.wire_bits, "hamming74"))
+    frames = np.asarray(plain.wire_bits).sum(-1)  # each sender's frame
+    np.testing.assert_allclose(coded.wire_bits.sum(-1), ecc.wire_bits(frames, "hamming74"))
     m = np.asarray(coded.symbols)
-    for i in np.ndindex(m.shape[:3]):
-        packet = ecc.encode(channel.encode(m[i], "paper"))
-        assert 8 * len(packet) == coded.wire_bits[i]
+    for i in np.ndindex(m.shape[:2]):
+        frame = ecc.encode(channel.encode_frame(m[i], "paper"))
+        assert 8 * len(frame) == coded.wire_bits[i].sum()
+        assert channel.encode_sender(ChannelConfig(ecc="hamming74"), m[i], m[i]) == frame
     with pytest.raises(ValueError, match="ChannelConfig.ecc"):
         ChannelConfig(ecc="turbo")

@@ -88,19 +88,21 @@ def test_bits_and_penalty_logged_from_real_symbols(fast_compile):
         return jax.jit(lambda p: tr.evaluate(p, jax.random.key(1), 16))(params)
 
     m = metrics("discrete")
-    # 3 agents x 2 recipients x 10 elements; payload bits at most 4 each. On the wire, a link
-    # with a non-null element is a packet of 10 + 2 P bits (bitmap, codewords of P payload bits)
-    # padded to a byte (+0 to 6 bits: 10 + 2 P is even) plus a 32-bit CRC; a silent link is 0.
+    # 3 agents x 2 recipients x 10 elements; payload bits at most 4 each. On the wire, each
+    # sender with a speaking link sends one frame: a 2-bit recipient map, each speaking link's
+    # 10-bit bitmap and codewords (2 P bits for P payload bits), padding to a byte (at most 6
+    # bits: the body is even) and a 32-bit CRC; a silent sender sends nothing.
     bits, wire = m["bits_per_step"], m["wire_bits_per_step"]
     assert 0 < bits <= 60 * 4
-    assert 2 * bits < wire <= 2 * bits + 6 * (42 + 6)
+    assert 2 * bits < wire <= 2 * bits + 3 * (2 + 2 * 10 + 6 + 32)
     assert m["penalty"] >= m["bits_per_step"]  # the bound holds on average here too
     off = metrics("off")
     assert off["bits_per_step"] == 0 and off["wire_bits_per_step"] == 0 and off["penalty"] == 0
     cont = metrics("continuous")
     assert cont["bits_per_step"] == 60 * 32 and cont["penalty"] == 0
-    # 6 links of 10 non-zero floats: 2-byte bitmap, 40 bytes of floats, 4 bytes of CRC.
-    assert cont["wire_bits_per_step"] == 6 * 8 * (2 + 40 + 4)
+    # 3 frames of 2 links of 10 non-zero floats: a 2-bit map, two 10-bit bitmaps and 640 bits
+    # of floats (662 bits, padded to 83 bytes), then 4 bytes of CRC.
+    assert cont["wire_bits_per_step"] == 3 * 8 * (83 + 4)
 
 
 @pytest.mark.slow

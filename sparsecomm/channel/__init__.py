@@ -43,14 +43,25 @@ from sparsecomm.channel.codes import (
 )
 from sparsecomm.channel.config import CHANNEL_MODES, PRICES, ChannelConfig
 from sparsecomm.channel.fitted import FittedCode, fit
+from sparsecomm.channel.frames import (
+    CHECK_BITS,
+    FrameError,
+    check_width,
+    decode_frame,
+    encode_frame,
+    frame_bits,
+    link_bits,
+)
 from sparsecomm.channel.gate import GATES, gate, hard_gate
 from sparsecomm.channel.layer import Messages, reconstruct, send
 from sparsecomm.channel.links import (
     Received,
     Sent,
     decode_link,
+    decode_sender,
     dither_links,
     encode_link,
+    encode_sender,
     link_dither,
     null_message,
     receive,
@@ -58,7 +69,7 @@ from sparsecomm.channel.links import (
     transmit,
 )
 from sparsecomm.channel.noise import NoiseConfig, NoisyLink
-from sparsecomm.channel.penalty import bit_penalty, expected_bits, expected_wire_bits
+from sparsecomm.channel.penalty import bit_penalty, expected_bits, expected_frame_bits
 from sparsecomm.channel.quantizer import (
     dequantize,
     dither,
@@ -80,6 +91,7 @@ from sparsecomm.channel.routing import (
 
 __all__ = [
     "CHANNEL_MODES",
+    "CHECK_BITS",
     "PRICES",
     "CODE_NAMES",
     "GATES",
@@ -89,6 +101,7 @@ __all__ = [
     "ChannelConfig",
     "Code",
     "FittedCode",
+    "FrameError",
     "Messages",
     "PacketError",
     "Received",
@@ -96,8 +109,11 @@ __all__ = [
     "Sent",
     "as_code",
     "bit_penalty",
+    "check_width",
     "decode",
+    "decode_frame",
     "decode_link",
+    "decode_sender",
     "deliver",
     "dequantize",
     "dither",
@@ -106,14 +122,18 @@ __all__ = [
     "ecc",
     "lossy",
     "encode",
+    "encode_frame",
     "encode_link",
+    "encode_sender",
     "expected_bits",
-    "expected_wire_bits",
+    "expected_frame_bits",
     "fit",
+    "frame_bits",
     "frequency_remap",
     "gate",
     "hard_gate",
     "inbox",
+    "link_bits",
     "link_dither",
     "link_tables",
     "live_links",

@@ -13,13 +13,15 @@ import os
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from sparsecomm.channel.codes import CODE_NAMES, Code, frequency_remap
 from sparsecomm.channel.ecc import ECC_NAMES
 from sparsecomm.channel.fitted import FittedCode
+from sparsecomm.channel.frames import CHECK_BITS
 from sparsecomm.channel.noise import NoiseConfig
-from sparsecomm.channel.penalty import code_penalty, expected_wire_bits
+from sparsecomm.channel.penalty import code_penalty, expected_frame_bits
 from sparsecomm.channel.quantizer import check_levels
 
 CHANNEL_MODES = ("discrete", "continuous", "off", "reinforced")
@@ -76,11 +78,17 @@ class ChannelConfig:
     prices: str = "payload"
     """What the bit penalty prices and a bit budget (``BudgetConfig.bits``) counts, per step:
     ``payload``, the paper's codeword bits (its penalty ``log2(levels z + 1)`` per element), or
-    ``wire``, every bit a packet carries, presence bitmap, padding and CRC-32 included (its
-    penalty the exact expected packet bits of each link under the dither,
-    ``channel.expected_wire_bits``, so falling silent is what saves most). ``wire`` needs the
-    ``discrete`` mode, the ``paper`` or ``fixed`` code and no ``ecc``. Paper: ``payload``; both
-    counts are logged either way."""
+    ``wire``, every bit a sender's frame carries, recipient map, presence bitmaps, padding and
+    check included (its penalty the exact expected frame bits of each sender under the dither,
+    ``channel.expected_frame_bits``, shared equally by the sender's links, so falling silent
+    is what saves most). ``wire`` needs the ``discrete`` mode, the ``paper`` or ``fixed`` code
+    and no ``ecc``. Paper: ``payload``; both counts are logged either way."""
+    check_bits: int = 32
+    """Width in bits of the integrity check of each sender's frame (``channel.frames``): one of
+    ``channel.CHECK_BITS`` (0, 8, 16, 32). A corrupted frame passes a w-bit check with
+    probability about 2^-w (measured by ``benchmarks/frame_fuzz.py``, docs/wire.md); a frame
+    that fails it is lost. ours: 32, the CRC-32 every packet carried before frames (the paper
+    sends no packets)."""
     link_gate: bool = False
     """Each link gets one more signal element from the message head, ``g`` in [0, 1]: whether
     the link speaks this step, quantized with its own dither (1 with probability exactly ``g``,
@@ -143,6 +151,8 @@ class ChannelConfig:
                 )
         if self.prices not in PRICES:
             raise _bad("prices", self.prices, f"one of {PRICES}")
+        if isinstance(self.check_bits, bool) or self.check_bits not in CHECK_BITS:
+            raise _bad("check_bits", self.check_bits, f"one of {CHECK_BITS}")
         if self.prices == "wire" and (
             self.mode != "discrete" or self.code not in ("paper", "fixed") or self.ecc != "none"
         ):
@@ -203,9 +213,10 @@ class ChannelConfig:
     @property
     def deployable(self) -> bool:
         """A deployed agent can run it alone: its symbols need no draw but the dither
-        (``discrete``, ``continuous``, ``off``; ``reinforced`` samples inside the channel), and
-        its receivers no rule the runtime does not carry yet (``on_silence = "hold"``)."""
-        return not self.samples_symbols and not self.holds
+        (``discrete``, ``continuous``, ``off``; ``reinforced`` samples inside the channel) and
+        its links are framed (``channel.frames``: not a ``fitted`` code, whose packets carry
+        their own context)."""
+        return not self.samples_symbols and self.code != "fitted"
 
     @property
     def code_obj(self) -> Code | FittedCode:
@@ -227,35 +238,38 @@ class ChannelConfig:
         return code_penalty(z, self.levels, self.code_obj)
 
     def link_penalty(self, z: jax.Array, code: Code | FittedCode | None = None) -> jax.Array:
-        """The differentiable cost of each link of signals ``z`` (..., C') -> (...), in the bits
-        the channel prices (``prices``): the sum of :meth:`penalty` over the link's elements,
-        or the link's exact expected packet bits; with ``link_gate`` (the gate ``g`` last in
-        ``z``), ``g`` times that, the link's expected cost. ``code``: price in this code
-        instead of ``code_obj`` (the plug-in layer's)."""
+        """The differentiable cost of each link of signals ``z`` (..., L, C') -> (..., L), a
+        sender's L links on the second-to-last axis, in the bits the channel prices
+        (``prices``): the sum of :meth:`penalty` over the link's elements, with ``link_gate``
+        (the gate ``g`` last in ``z``) times ``g``, the link's expected cost; or for ``wire``
+        the sender's exact expected frame bits (``channel.expected_frame_bits``), shared
+        equally by its links. ``code``: price in this code instead of ``code_obj`` (the
+        plug-in layer's)."""
         code = self.code_obj if code is None else code
         gate = None
         if self.link_gate:
             z, gate = z[..., :-1], z[..., -1]
         if self.prices == "wire":
-            cost = expected_wire_bits(z, self.levels, code.wire_lengths(z.shape[-1]))
-        else:
-            cost = code_penalty(z, self.levels, code).sum(-1)
+            lengths = code.wire_lengths(z.shape[-1])
+            frame = expected_frame_bits(z, self.levels, lengths, self.check_bits, gate)
+            return jnp.broadcast_to(frame[..., None] / z.shape[-2], z.shape[:-1])
+        cost = code_penalty(z, self.levels, code).sum(-1)
         return cost if gate is None else gate * cost
 
     def max_bits_per_step(self, num_agents: int) -> int:
         """The most bits (in the count of ``prices``) a team of ``num_agents`` can send in one
         step: every element of every link at the code's longest codeword, and for ``wire``
-        each link's whole packet."""
+        each sender's whole frame."""
         code = self.code_obj
         if code.name == "fitted":
             code = Code("paper", self.levels)  # payload: the paper's count
-        links = num_agents * (num_agents - 1)
+        links = num_agents - 1
         if self.prices == "wire":
             longest = int(code.wire_lengths(self.num_elements).max())
-            body = self.num_elements * (1 + longest)
-            return links * (8 * (-(-body // 8)) + 32)
+            body = links * (1 + self.num_elements * (1 + longest))
+            return num_agents * (8 * (-(-body // 8)) + self.check_bits)
         per_element = code.max_paper_length if code.name == "paper" else code.fixed_width
-        return links * self.num_elements * per_element
+        return num_agents * links * self.num_elements * per_element
 
     @property
     def counted_metric(self) -> str:

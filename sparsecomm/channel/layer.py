@@ -83,9 +83,9 @@ class Messages(NamedTuple):
     payload_bits: jax.Array
     """(..., K, K) int32: each link's payload bits under ``code`` (the paper's count)."""
     wire_bits: jax.Array
-    """(..., K, K) int32: each link's packet on the wire, framing and CRC-32 included
-    (``channel.wire_bits``; 0 for a silent link). ``8 * len(channel.encode(symbols[..., i, j,
-    :], code))`` when computed on the host."""
+    """(..., K, K) float32: each link's share of its sender's frame on the wire (``Sent.wire_bits``;
+    0 for a silent link): summed over a sender's recipients, ``8 * len(channel.encode_frame(
+    ...))`` of its links by recipient slot when computed on the host."""
     mask: jax.Array
     """(..., K, K) bool: the links that existed (the routing, diagonal cleared)."""
     news: jax.Array | None = None
@@ -223,7 +223,7 @@ def _send(key, z, mask, t, prev, last, levels: int, code) -> Messages:
         mean,
         pairs(sent.penalty),
         pairs(sent.payload_bits.astype(jnp.int32)),
-        pairs(sent.wire_bits.astype(jnp.int32)),
+        pairs(sent.wire_bits),
         mask,
         news,
     )

@@ -32,6 +32,7 @@ from sparsecomm.channel.ecc import decode as ecc_decode
 from sparsecomm.channel.ecc import encode as ecc_encode
 from sparsecomm.channel.ecc import wire_bits as ecc_bits
 from sparsecomm.channel.fitted import FittedCode
+from sparsecomm.channel.frames import decode_frame, encode_frame, frame_bits, link_bits
 from sparsecomm.channel.noise import ON_DROP
 from sparsecomm.channel.permuted import packet_bits as permuted_bits
 from sparsecomm.channel.quantizer import (
@@ -142,17 +143,25 @@ class Sent(NamedTuple):
     """(..., K, K-1) float32: each link's payload bits (the paper's count, ``channel.payload_bits``
     under the config's code)."""
     wire_bits: jax.Array
-    """(..., K, K-1) float32: each link's packet on the wire, framing, CRC and error
-    correction included (0: silent). ``8 * len(encode_link(...))`` on the host."""
+    """(..., K, K-1) float32: each link's share of its sender's frame on the wire
+    (``channel.frames``; 0: silent): the bits the link adds to the frame's body, plus an equal
+    share, among the sender's speaking links, of the recipient map, the padding, the check and
+    error correction. Summed over a sender's links it is ``8 * len(encode_sender(...))`` on the
+    host. A ``fitted`` code's links send their own packets (``8 * len(encode_link(...))``)."""
     log_prob: jax.Array
     """(..., K) float32: log-probability of each sender's symbols (``samples_symbols``; else 0)."""
     live: jax.Array | None
     """(..., K, K-1) bool: the links that existed (``None``: all of them)."""
     speak: jax.Array | None = None
-    """(..., K, K-1) float32, with ``link_gate``: 1 where the link's gate opened, else 0, with
-    the straight-through gradient of its probability ``g``; ``z_hat`` is then the message the
+    """(..., K, K-1) float32, with ``link_gate``: 1 where the link speaks (its gate opened and
+    one of its symbols is not null: ``wire_bits > 0``), else 0, with the straight-through
+    gradient of its gate's probability ``g``; ``z_hat`` is then the message the
     link would carry, and :func:`receive` mixes it with what a silent link delivers. ``None``:
     no gate."""
+    frame_bits: jax.Array | None = None
+    """(..., K, K-1) float32: the bits of the datagram that carries each link on a network of
+    unicast links, its sender's whole frame where the link speaks (0: silent); what noise on
+    the wire acts on. ``None``: ``wire_bits`` (a link's own packet)."""
 
 
 def transmit(
@@ -204,7 +213,7 @@ def transmit(
     if cfg.sends_values:
         m, z_hat, log_prob = jnp.zeros(z.shape, jnp.int32), z, no_log_prob
         payload = jnp.full(lead, 32.0 * c)
-        wire = ecc_bits(wire_bits(z, code), cfg.ecc).astype(jnp.float32)
+        wire, frame = _framed_bits(cfg, z, code)
         penalty = jnp.zeros(lead, jnp.float32)
     else:
         if cfg.samples_symbols:
@@ -218,24 +227,42 @@ def transmit(
             if cfg.link_gate:  # the last element opens the link: 1 with probability g
                 z, g, u, u_gate = z[..., :-1], z[..., -1], u[..., :-1], u[..., -1]
                 opens = jnp.clip(jnp.floor(g + u_gate + 0.5), 0.0, 1.0)
-                speak = g + jax.lax.stop_gradient(opens - g)
             m, z_hat = quantize_dithered(z, u, cfg.levels)
             if cfg.link_gate:  # a closed link sends nothing: every element null
                 m = jnp.where(opens[..., None] > 0, m, 0)
+                # and a link speaks when it sends something: an open gate whose symbols are
+                # all null sends no packet either (on a network it is silence)
+                speak = g + jax.lax.stop_gradient(opens * (m != 0).any(-1) - g)
             log_prob = no_log_prob
         c = z.shape[-1]
         payload = payload_bits(m, code).sum(-1).astype(jnp.float32)
+        frame = None
         if cfg.code == "permuted":  # every link sends its C codewords, whatever they say
             wire = jnp.full(payload.shape, float(permuted_bits(c, cfg.levels)))
-        else:
+        elif isinstance(code, FittedCode):  # a fitted code's links send their own packets
             wire = ecc_bits(wire_bits(m, code, prev=prev), cfg.ecc).astype(jnp.float32)
+        else:
+            wire, frame = _framed_bits(cfg, m, code)
         if cfg.samples_symbols:
             penalty = cfg.link_penalty(z, code)
     if live is not None:
         z_hat = jnp.where(live[..., None], z_hat, 0.0)
         payload, wire, penalty = (jnp.where(live, x, 0.0) for x in (payload, wire, penalty))
         speak = None if speak is None else jnp.where(live, speak, 0.0)
-    return Sent(m.astype(jnp.int32), z_hat, penalty, payload, wire, log_prob, live, speak)
+    return Sent(m.astype(jnp.int32), z_hat, penalty, payload, wire, log_prob, live, speak, frame)
+
+
+def _framed_bits(cfg: ChannelConfig, m: jax.Array, code: Code):
+    """Each link's share of its sender's frame and the frame each speaking link's datagram
+    carries (``Sent.wire_bits``, ``Sent.frame_bits``), from symbols (or float32 values) ``m``
+    (..., K, K-1, C): exactly the frames ``encode_sender`` writes."""
+    body = link_bits(m, code).astype(jnp.float32)  # (..., K, K-1)
+    frame = ecc_bits(frame_bits(m, code, cfg.check_bits), cfg.ecc).astype(jnp.float32)
+    speaking = body > 0
+    count = jnp.maximum(speaking.sum(-1, keepdims=True), 1)
+    overhead = (frame[..., None] - body.sum(-1, keepdims=True)) / count
+    share = jnp.where(speaking, body + overhead, 0.0)
+    return share, jnp.where(speaking, frame[..., None], 0.0)
 
 
 def _sample_symbols(cfg: ChannelConfig, keys: jax.Array, t, z: jax.Array):
@@ -366,6 +393,49 @@ def receive(
     if cfg.holds:
         held = jnp.ones(got.shape[:-1], jnp.float32) if news is None else news.astype(jnp.float32)
     return Received(got, last, held)
+
+
+# -- one sender's frame on a real network --------------------------------------------------
+
+
+def encode_sender(cfg: ChannelConfig, symbols: np.ndarray, signal: np.ndarray) -> bytes:
+    """One sender's frame at one step, exactly as the channel counts it (``channel.frames``;
+    ``b""``: all its links silent; error correction applied).
+
+    Args:
+      cfg: the channel (a framed one: ``cfg.deployable``).
+      symbols: (L, C) int, the symbols of the sender's L links by recipient slot
+        (``Sent.symbols``).
+      signal: (L, C') float32, their signals (``StepOut.signal``): a channel that sends values
+        sends the first C; the others ignore them.
+
+    Returns:
+      The frame's bytes; ``8 * len`` is its links' ``Sent.wire_bits`` summed.
+    """
+    if not cfg.speaks:
+        return b""
+    if cfg.sends_values:
+        message = np.asarray(signal, np.float32)[..., : cfg.num_elements]
+    else:
+        message = np.asarray(symbols)
+    frame = encode_frame(message, cfg.code_obj, check_bits=cfg.check_bits)
+    if frame and cfg.ecc != "none":
+        frame = ecc_encode(frame, cfg.ecc)
+    return frame
+
+
+def decode_sender(cfg: ChannelConfig, data: bytes, num_links: int) -> np.ndarray:
+    """The (L, C) messages of one sender's frame (symbols, or floats for a channel that sends
+    values; ``b""``: all null). Raises ``channel.PacketError`` for anything that is not a frame
+    of this channel with ``num_links`` links."""
+    if data and cfg.ecc != "none":
+        try:
+            data = ecc_decode(data, cfg.ecc)
+        except ValueError as e:
+            raise PacketError(str(e)) from None
+        if not data:  # too short to hold a protected frame; silence is sent as nothing
+            raise PacketError("an ecc-protected frame too short to hold a frame")
+    return decode_frame(data, cfg.code_obj, num_links, cfg.num_elements, check_bits=cfg.check_bits)
 
 
 # -- one link's packet on a real network ----------------------------------------------------

@@ -59,8 +59,9 @@ class LossyLinks:
         scrambles = self.cfg.code == "permuted"
         if scrambles:  # flips corrupt symbols instead of losing packets
             key, k_symbols = jax.random.split(key)
+        carried = sent.wire_bits if sent.frame_bits is None else sent.frame_bits
         lost, bad = lost_packets(
-            key, self.noise, sent.wire_bits, state.bad, self.cfg.ecc, flips_lose=not scrambles
+            key, self.noise, carried, state.bad, self.cfg.ecc, flips_lose=not scrambles
         )
         now = self._corrupt(k_symbols, sent, u, state.bad) if scrambles else sent.z_hat
         arrived, ok = now, ~lost

@@ -15,7 +15,7 @@ import numpy as np
 
 from sparsecomm.channel.quantizer import check_levels, check_unit_interval
 
-__all__ = ["bit_penalty", "expected_bits", "expected_wire_bits"]
+__all__ = ["bit_penalty", "expected_bits", "expected_frame_bits"]
 
 
 def bit_penalty(z: jax.Array, levels: int) -> jax.Array:
@@ -49,66 +49,95 @@ def expected_bits(z: jax.Array, levels: int, lengths) -> jax.Array:
 
 _COS8 = np.cos(2 * np.pi * np.arange(8) / 8).astype(np.float32)  # numpy: no device at import
 _SIN8 = np.sin(2 * np.pi * np.arange(8) / 8).astype(np.float32)
+_OMEGA = np.arange(1, 5)  # the residues w = 1..4 of the characteristic function (w = 0 is 1)
 
 
-def expected_wire_bits(
-    z: jax.Array, levels: int, wire_lengths, frame_bits: int | None = None
+def _turn(lengths, omega=_OMEGA):
+    """``exp(-2 pi i w lengths / 8)`` for w = 1..4, as (cos, -sin): (..., 4) each."""
+    turn = (jnp.asarray(lengths)[..., None] * omega) % 8
+    return jnp.asarray(_COS8)[turn], -jnp.asarray(_SIN8)[turn]
+
+
+def expected_frame_bits(
+    z: jax.Array, levels: int, wire_lengths, check_bits: int = 32, gate=None
 ) -> jax.Array:
-    """Exact expected packet bits of one link under the dithered quantizer: ``E[8 *
-    len(encode(m))]`` for signals ``z`` (..., C), differentiable (piecewise linear in each
-    element between symbol boundaries). Returns (...).
+    """Exact expected bits of one sender's frame under the dithered quantizer, ``E[8 *
+    len(channel.encode_frame(m))]``, differentiable (piecewise linear in each element between
+    symbol boundaries, smooth in the gates).
 
-    ``wire_lengths`` (C, levels + 1): the bits each element's symbol adds to the packet's body
-    (``Code.wire_lengths``; 0 for the null). A link of all-null symbols sends nothing; any
-    other packet is the C-bit presence bitmap, the codewords (S bits), zero padding to a byte
-    and the 32-bit CRC (``frame_bits``, default ``C + 32``, is everything but the codewords and
-    the padding). So with ``p0 = P(every symbol is null)``::
+    Args:
+      z: (..., L, C) the signals of the sender's L links, in [0, 1].
+      levels: |M|.
+      wire_lengths: (C, levels + 1) the bits each element's symbol adds to its link's body
+        beyond the presence bitmap (``Code.wire_lengths``; 0 for the null).
+      check_bits: the frame's check (``ChannelConfig.check_bits``).
+      gate: (..., L) each link's probability of opening (``ChannelConfig.link_gate``), or
+        ``None``: always open.
 
-        E[W] = (1 - p0) frame_bits + E[S] + E[pad(C + S); some symbol not null]
+    Returns:
+      (...) float32 expected frame bits.
 
-    Element k's symbol is ``floor(levels z_k)`` or one more (probability ``f_k``, the
-    fractional part), independently across elements (each has its own dither), so ``p0`` is the
-    product of ``P(m_k = 0) = max(0, 1 - levels z_k)`` and the padding's distribution, that of
-    the codeword bits modulo 8, is the product of the elements' characteristic functions on the
-    8 residues. The cliff: ``p0`` is 0,
-    with no gradient, as soon as one element has ``levels z_k >= 1``.
+    The frame (``channel.frames``) is an L-bit recipient map, then each speaking link's C-bit
+    presence bitmap and codewords, zero padding to a byte and the check. A link speaks when its
+    gate opens and one of its symbols is not null; a sender none of whose links speaks sends no
+    frame. Element k's symbol is ``floor(levels z_k)`` or one more (probability ``f_k``, the
+    fractional part), independently of the others (each has its own dither), so with
+    ``p0_l = prod_k max(0, 1 - levels z_lk)`` the chance that link l's symbols are all null and
+    ``q = prod_l (1 - g_l (1 - p0_l))`` the chance that no link speaks::
+
+        E[W] = (1 - q) (L + check_bits) + sum_l g_l ((1 - p0_l) C + E[S_l])
+               + E[pad(L + X); some link speaks]
+
+    ``S_l`` the codeword bits of link l and ``X`` the links' bits after the recipient map. The
+    padding term comes from the distribution of ``X mod 8``: the product of the links'
+    characteristic functions on the 8 residues, each the gate's mixture of silence and of its
+    bitmap plus the product of its elements' characteristic functions. The cliff: ``p0_l`` is
+    0, with no gradient, as soon as one element has ``levels z_lk >= 1``; a gate's ``g_l`` then
+    still prices the link's whole body.
     """
     levels = check_levels(levels)
     check_unit_interval(z)
     x = levels * jnp.asarray(z, jnp.float32)
-    c = x.shape[-1]
+    num_links, c = x.shape[-2], x.shape[-1]
+    g = jnp.ones(x.shape[:-1], jnp.float32) if gate is None else jnp.asarray(gate, jnp.float32)
     lo = jnp.clip(jnp.floor(jax.lax.stop_gradient(x)), 0, levels).astype(jnp.int32)
     hi = jnp.minimum(lo + 1, levels)
     f = x - lo
     table = jnp.asarray(wire_lengths, jnp.int32)
     k = jnp.arange(c)
     len_lo, len_hi = table[k, lo], table[k, hi]
-    codewords = ((1.0 - f) * len_lo + f * len_hi).sum(-1)
-    p0 = jnp.prod(jnp.where(lo == 0, 1.0 - f, 0.0), -1)
-    # E[pad(C + S)] from the characteristic function of S mod 8, Phi(w) = E[exp(-2 pi i w S /
-    # 8)]: the product over elements of each one's (two symbols, two lengths), in real
-    # arithmetic. Then E[pad] = sum_w Phi(w) Q(w), Q the inverse DFT of the padding table; S is
-    # real, so Phi(8 - w) is Phi(w)'s conjugate and w = 1..4 suffice (Phi(0) = 1).
-    omega = np.arange(1, 5)
-    cos8, sin8 = jnp.asarray(_COS8), jnp.asarray(_SIN8)
-    re, im = jnp.ones((*x.shape[:-1], 4)), jnp.zeros((*x.shape[:-1], 4))
-    for j in range(c):
-        lo_turn = (len_lo[..., j, None] * omega) % 8  # (..., 4): w * length mod 8, in eighths
-        hi_turn = (len_hi[..., j, None] * omega) % 8
-        fj = f[..., j, None]
-        a = (1.0 - fj) * cos8[lo_turn] + fj * cos8[hi_turn]
-        b = -((1.0 - fj) * sin8[lo_turn] + fj * sin8[hi_turn])
-        re, im = re * a - im * b, re * b + im * a
-    frame = c + 32 if frame_bits is None else frame_bits
+    codewords = ((1.0 - f) * len_lo + f * len_hi).sum(-1)  # (..., L): E[S_l]
+    p0 = jnp.prod(jnp.where(lo == 0, 1.0 - f, 0.0), -1)  # (..., L)
+    speaks = g * (1.0 - p0)
+    quiet = jnp.prod(1.0 - speaks, -1)  # (...): no link speaks
+    # Phi_l(w) = E[exp(-2 pi i w S_l / 8)], w = 1..4: the product over the link's elements of
+    # each one's two symbols, in real arithmetic.
+    (a_lo, b_lo), (a_hi, b_hi) = _turn(len_lo), _turn(len_hi)
+    fw = f[..., None]
+    a, b = (1.0 - fw) * a_lo + fw * a_hi, (1.0 - fw) * b_lo + fw * b_hi  # (..., L, C, 4)
+    re, im = a[..., 0, :], b[..., 0, :]
+    for j in range(1, c):
+        re, im = re * a[..., j, :] - im * b[..., j, :], re * b[..., j, :] + im * a[..., j, :]
+    # psi_l(w) = (1 - g) + g (p0 + exp(-2 pi i w C / 8) (Phi_l(w) - p0)): the link's bits
+    cw, sw = _turn(np.int32(c))
+    p0w, gw = p0[..., None], g[..., None]
+    spoke_re, spoke_im = cw * (re - p0w) - sw * im, cw * im + sw * (re - p0w)
+    link_re, link_im = 1.0 - gw + gw * (p0w + spoke_re), gw * spoke_im  # (..., L, 4)
+    re, im = link_re[..., 0, :], link_im[..., 0, :]
+    for j in range(1, num_links):
+        lr, li = link_re[..., j, :], link_im[..., j, :]
+        re, im = re * lr - im * li, re * li + im * lr
+    # E[pad(L + X)] = sum_w Phi_X(w) Q(w), Q the inverse DFT of the padding after r = X mod 8;
+    # X is real, so Phi_X(8 - w) is Phi_X(w)'s conjugate and w = 1..4 suffice (Phi_X(0) = 1).
     r = np.arange(8)
-    pad = (-(c + r)) % 8  # padding after a body of C + r bits, r = S mod 8
-    q_re = (pad * np.cos(2 * np.pi * np.outer(omega, r) / 8)).sum(1) / 8
-    q_im = (pad * np.sin(2 * np.pi * np.outer(omega, r) / 8)).sum(1) / 8
+    pad = (-(num_links + r)) % 8
+    angle = 2 * np.pi * np.outer(_OMEGA, r) / 8
     twice = np.array([2.0, 2.0, 2.0, 1.0])  # w and 8 - w, and w = 4 once
-    q_re, q_im = jnp.asarray(twice * q_re, jnp.float32), jnp.asarray(twice * q_im, jnp.float32)
-    mean_pad = pad.mean()  # Phi(0) Q(0)
-    padding = mean_pad + (re * q_re - im * q_im).sum(-1) - p0 * pad[0]  # S = 0 if all null
-    return (1.0 - p0) * frame + codewords + padding
+    q_re = jnp.asarray(twice * (pad * np.cos(angle)).sum(1) / 8, jnp.float32)
+    q_im = jnp.asarray(twice * (pad * np.sin(angle)).sum(1) / 8, jnp.float32)
+    padding = pad.mean() + (re * q_re - im * q_im).sum(-1) - quiet * pad[0]
+    body = (g * ((1.0 - p0) * c + codewords)).sum(-1)
+    return (1.0 - quiet) * (num_links + check_bits) + body + padding
 
 
 def code_penalty(z: jax.Array, levels: int, code) -> jax.Array:
