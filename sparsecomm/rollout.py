@@ -74,6 +74,7 @@ class Trajectory:
     symbols: Any = None  # (T, B, K, K-1, C) int32 symbols of each link (only ``keep_symbols``)
     lost: Any = None  # (T, B) packets the receivers lost (only with ``ChannelConfig.noise``)
     links: Any = None  # (T, B) links that existed (only with routing, ``sparsecomm.scaling``)
+    datagram_bits: Any = None  # (T, B) bits of the frames the speaking links' datagrams carry
 
 
 class Carry(NamedTuple):
@@ -234,6 +235,9 @@ def rollout(
             symbols=sent.symbols if keep_symbols else None,
             lost=lost,
             links=None if live is None else live.sum((-2, -1)).astype(jnp.float32),
+            datagram_bits=(sent.wire_bits if sent.frame_bits is None else sent.frame_bits).sum(
+                (-2, -1)
+            ),
         )
         carry = Carry(
             env_state=next_state,
@@ -285,8 +289,10 @@ def agent_draws(
 def episode_metrics(traj: Trajectory) -> dict[str, jax.Array]:
     """Batch means of the SPEC section 6 metrics (rewards in the paper's units), and
     ``speaking_fraction``, the share of the link-steps (of links that existed) whose packet was
-    not empty; with a noisy channel also ``packets_lost_per_step``, with routing
-    ``links_per_step`` (links that existed)."""
+    not empty; ``datagrams_per_step``, the speaking links (one datagram each on a network of
+    unicast links) and ``datagram_bits_per_step``, the frames those datagrams carry (each its
+    sender's whole frame; with two agents the wire bits); with a noisy channel also
+    ``packets_lost_per_step``, with routing ``links_per_step`` (links that existed)."""
     valid = traj.valid.astype(jnp.float32)
     steps = valid.sum()
     metrics = {
@@ -300,6 +306,9 @@ def episode_metrics(traj: Trajectory) -> dict[str, jax.Array]:
     k = traj.link_bits.shape[-1]
     links = k * (k - 1) * valid if traj.links is None else traj.links * valid
     metrics["speaking_fraction"] = (traj.speaking * valid).sum() / jnp.maximum(links.sum(), 1.0)
+    metrics["datagrams_per_step"] = (traj.speaking * valid).sum() / steps
+    if traj.datagram_bits is not None:
+        metrics["datagram_bits_per_step"] = (traj.datagram_bits * valid).sum() / steps
     if traj.lost is not None:
         metrics["packets_lost_per_step"] = (traj.lost * valid).sum() / steps
     if traj.links is not None:

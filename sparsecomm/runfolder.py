@@ -138,6 +138,14 @@ def runs_of(folder: str | Path) -> list[Run]:
     return spec_from_meta(checkpoint.load_meta(folder / CHECKPOINT)).runs()
 
 
+def read_config(folder: str | Path) -> RLConfig | ILConfig:
+    """The config of a run folder or exported team, read from its metadata alone."""
+    folder = Path(folder)
+    if is_team(folder):
+        return _config(_team_meta(folder), folder / TEAM)
+    return _config(checkpoint.load_meta(folder / CHECKPOINT), folder)
+
+
 class ExportedTeam(NamedTuple):
     """An exported team loaded without building a learner: what an agent or world process
     needs, in a second."""

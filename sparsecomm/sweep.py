@@ -40,6 +40,8 @@ METRIC_ORDER = [
     "bits_per_step",
     "wire_bits_per_step",
     "speaking_fraction",
+    "datagrams_per_step",
+    "datagram_bits_per_step",
     "penalty",
 ]
 

@@ -89,3 +89,35 @@ def test_each_series_is_judged_against_its_own_lambda_zero(tmp_path):
     frontier.main(["--il", f"weak={path}", str(path), "--out", str(tmp_path / "f")])
     rows = json.loads((tmp_path / "f" / "summary.json").read_text())
     assert [r.get("series") for r in rows] == ["weak", "weak", None, None]
+
+
+def test_wire_frontier_rows_count_the_network_from_the_datagrams():
+    from sparsecomm import wire_frontier
+    from sparsecomm.channel import ChannelConfig
+    from sparsecomm.configs import RLConfig
+
+    config = RLConfig(channel=ChannelConfig(prices="wire", link_gate=True, check_bits=8))
+    runs = [
+        {
+            "seed": s,
+            "lam": 0.0,
+            "budget": 24.0,
+            "success_rate": 0.9 + 0.01 * s,
+            "episode_length": 20.0 + s,
+            "bits_per_step": 10.0,
+            "wire_bits_per_step": 24.0 + s,
+            "speaking_fraction": 0.25,
+            "datagrams_per_step": 0.5,
+            "datagram_bits_per_step": 24.0 + s,
+        }
+        for s in range(5)
+    ]
+    (row,) = wire_frontier.rows({"runs": runs}, config, "small", "rl")
+    assert (row["counts"], row["budget"], row["seeds"], row["check_bits"]) == ("wire", 24.0, 5, 8)
+    assert row["network_bits"][0] == pytest.approx(26.0 + 0.5 * 8 * (13 + 28))
+    lo, mean, hi = row["success"][1], row["success"][0], row["success"][2]
+    assert lo < mean < hi and mean == pytest.approx(0.92)
+    old = [{k: v for k, v in r.items() if not k.startswith("datagram")} for r in runs]
+    assert wire_frontier.rows({"runs": old}, config, "small", "rl")[0]["network_bits"] is None
+    with pytest.raises(ValueError, match="task"):
+        wire_frontier.rows({"runs": runs}, config, "big", "rl")

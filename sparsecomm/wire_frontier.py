@@ -1,0 +1,165 @@
+"""The frontier in packets (issue 31): success against the bits a network carries.
+
+Reads the evaluations of trained sweeps (a run folder's ``results.json``, or the ``eval.json``
+``sparsecomm eval`` writes beside it) and writes to ``--out``
+
+- ``summary.json``: a list of rows ``{"task": "small"|"paper", "learner": "rl"|"imitation",
+  "counts": "payload"|"wire"|null, "budget": float|null, "lam": float, "seeds": int,
+  "success": [mean, lo, hi], "episode_length": [...], "payload_bits": [...], "wire_bits":
+  [...], "speaking_fraction": [...], "network_bits": [...]}``, one per (sweep, budget,
+  lambda) group over its seeds, 95% CIs of :func:`sparsecomm.stats.bootstrap_ci`. ``counts``
+  is what the group's budget counts (``ChannelConfig.prices``; ``null`` without a budget).
+  ``network_bits`` are the bits per step the team puts on a network of unicast UDP links:
+  each speaking link's datagram, its sender's frame (``datagram_bits_per_step``) and the
+  datagram's header and the IPv4 and UDP headers (:data:`DATAGRAM_HEADER_BITS` each,
+  ``datagrams_per_step``). A deployed team plays ``eval``'s episodes exactly, so this is what
+  ``sparsecomm deploy`` measures; ``--deployed`` adds a deployment's measured figures to its
+  row (``"deployed"``). ``null`` for an evaluation made before these counts existed.
+- ``frontier.png``: success against wire bits per step, and the share of link-steps that speak.
+
+Command line (the numbers of docs/wire.md)::
+
+    python -m sparsecomm.wire_frontier --task small --learner rl \\
+        --runs RUN/eval.json OTHER/eval.json --out docs/results/wire
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from sparsecomm import runfolder
+from sparsecomm.deploy.wire import HEADER_BYTES, UDP_IP_BYTES
+from sparsecomm.jsonfile import write_json
+from sparsecomm.stats import bootstrap_ci
+
+TASKS = ("small", "paper")
+LEARNERS = ("rl", "imitation")
+COLUMNS = {
+    "success": "success_rate",
+    "episode_length": "episode_length",
+    "payload_bits": "bits_per_step",
+    "wire_bits": "wire_bits_per_step",
+    "speaking_fraction": "speaking_fraction",
+}
+"""Row field -> the evaluation metric it summarises."""
+DATAGRAM_HEADER_BITS = 8 * (HEADER_BYTES + UDP_IP_BYTES)
+"""328: the runtime's datagram header (13 bytes) and the IPv4 and UDP headers (28 bytes)."""
+
+
+def network_bits(run: dict) -> float | None:
+    """Bits per step on a network of unicast links for one evaluated run (``None`` when the
+    evaluation has no datagram counts)."""
+    if "datagrams_per_step" not in run or "datagram_bits_per_step" not in run:
+        return None
+    return run["datagram_bits_per_step"] + DATAGRAM_HEADER_BITS * run["datagrams_per_step"]
+
+
+def rows(results: dict, config, task: str, learner: str) -> list[dict]:
+    """The summary rows of one sweep's evaluation (its ``runs`` list) and config."""
+    if task not in TASKS:
+        raise ValueError(f"task must be one of {TASKS}, got {task!r}")
+    if learner not in LEARNERS:
+        raise ValueError(f"learner must be one of {LEARNERS}, got {learner!r}")
+    groups: dict[tuple, list[dict]] = {}
+    for run in results["runs"]:
+        groups.setdefault((run.get("budget"), float(run["lam"])), []).append(run)
+    out = []
+    for (budget, lam), runs in groups.items():
+        counts = None if budget is None else config.channel.prices
+        row = {"task": task, "learner": learner, "counts": counts, "budget": budget, "lam": lam}
+        row["seeds"] = len(runs)
+        for name, metric in COLUMNS.items():
+            row[name] = list(bootstrap_ci([r[metric] for r in runs]))
+        network = [network_bits(r) for r in runs]
+        row["network_bits"] = None if None in network else list(bootstrap_ci(network))
+        row["check_bits"] = config.channel.check_bits
+        row["link_gate"] = config.channel.link_gate
+        row["on_silence"] = config.channel.on_silence
+        out.append(row)
+    return out
+
+
+def read_rows(path: str | Path, task: str, learner: str) -> list[dict]:
+    """The rows of an evaluation file inside a run folder (its config read from the folder)."""
+    path = Path(path)
+    results = json.loads(path.read_text())
+    return rows(results, runfolder.read_config(path.parent), task, learner)
+
+
+def plot(table: list[dict], out_png: str | Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for r in table:
+        name = "λ 0" if r["budget"] is None else f"{r['counts']} {r['budget']:g}"
+        name = f"{r['task']}, {r['learner']}: {name}"
+        x, y, s = r["wire_bits"], r["success"], r["speaking_fraction"]
+        axes[0].errorbar(
+            x[0], y[0], xerr=[[x[0] - x[1]], [x[2] - x[0]]], yerr=[[y[0] - y[1]], [y[2] - y[0]]],
+            fmt="o", capsize=3, label=name,
+        )  # fmt: skip
+        axes[1].errorbar(
+            x[0], s[0], xerr=[[x[0] - x[1]], [x[2] - x[0]]], yerr=[[s[0] - s[1]], [s[2] - s[0]]],
+            fmt="o", capsize=3, label=name,
+        )  # fmt: skip
+    axes[0].set(xlabel="wire bits per step", ylabel="success rate", xscale="log")
+    axes[1].set(xlabel="wire bits per step", ylabel="link-steps that speak", xscale="log")
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    out_png = Path(out_png)
+    fig.savefig(out_png, dpi=120)
+    plt.close(fig)
+    return out_png
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--task", choices=TASKS, required=True)
+    parser.add_argument("--learner", choices=LEARNERS, required=True)
+    parser.add_argument(
+        "--runs", nargs="+", required=True, help="results.json or eval.json inside run folders"
+    )
+    parser.add_argument(
+        "--deployed",
+        nargs="*",
+        default=[],
+        help="BUDGET=REPORT: a deployment report (sparsecomm deploy's report.json) of a team of "
+        "the group with this budget (none: the lambda-0 group)",
+    )
+    parser.add_argument("--out", required=True, help="folder of summary.json (rows appended)")
+    args = parser.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    summary = out / "summary.json"
+    table = json.loads(summary.read_text()) if summary.exists() else []
+    new = [r for path in args.runs for r in read_rows(path, args.task, args.learner)]
+    for spec in args.deployed:
+        budget, _, report = spec.partition("=")
+        want = None if budget == "none" else float(budget)
+        found = json.loads(Path(report).read_text())
+        for r in new:
+            if r["budget"] == want:
+                r["deployed"] = found.get("summary", found)
+    keys = {(r["task"], r["learner"], r["counts"], r["budget"], r["lam"]) for r in new}
+    table = [r for r in table if (r["task"], r["learner"], r["counts"], r["budget"], r["lam"])
+             not in keys] + new  # fmt: skip
+    write_json(summary, table)
+    plot(table, out / "frontier.png")
+    for r in new:
+        name = "λ 0" if r["budget"] is None else f"{r['counts']} budget {r['budget']:g}"
+        net = "-" if r["network_bits"] is None else f"{r['network_bits'][0]:.0f}"
+        print(
+            f"{r['task']} {r['learner']} {name}: success {r['success'][0]:.3f} "
+            f"[{r['success'][1]:.3f}, {r['success'][2]:.3f}], length {r['episode_length'][0]:.1f}, "
+            f"payload {r['payload_bits'][0]:.1f}, wire {r['wire_bits'][0]:.1f}, speaking "
+            f"{r['speaking_fraction'][0]:.0%}, network {net} ({r['seeds']} seeds)"
+        )
+
+
+if __name__ == "__main__":
+    main()
