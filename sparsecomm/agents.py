@@ -56,6 +56,7 @@ class Actor(nn.Module):
     message_bias_init: float = 0.0
     message_gate: str = "sigmoid"
     attention: bool = False
+    gate_bias_init: float | None = None  # the last element of each link is its gate: its bias
 
     @nn.compact
     def __call__(self, carry: jax.Array, x: jax.Array, inbox=None, heard=None):
@@ -66,10 +67,18 @@ class Actor(nn.Module):
         carry, h = nn.GRUCell(self.gru, recurrent_kernel_init=orthogonal())(carry, h)
         logits = nn.Dense(self.num_actions)(h)
         bias = nn.initializers.constant(self.message_bias_init)
+        if self.gate_bias_init is not None:
+            bias = self._gated_bias
         a = nn.Dense(self.num_recipients * self.num_elements, bias_init=bias, name="message")(h)
         z = gate(self.message_gate, a)
         z = z.reshape(*z.shape[:-1], self.num_recipients, self.num_elements)
         return carry, logits, z
+
+    def _gated_bias(self, key, shape, dtype=jnp.float32):
+        """The message head's initial bias: ``message_bias_init``, and ``gate_bias_init`` on
+        each link's gate (the last of its elements)."""
+        per_link = jnp.full((self.num_recipients, self.num_elements), self.message_bias_init)
+        return per_link.at[:, -1].set(self.gate_bias_init).reshape(shape).astype(dtype)
 
 
 class Critic(nn.Module):
@@ -134,6 +143,7 @@ class Team:
             cfg.message_bias_init,
             cfg.message_gate,
             cfg.aggregate == "attention",
+            cfg.gate_bias_init if gate_elements else None,
         )
         self.critic = Critic(cfg.critic_hidden, num_agents)
 

@@ -50,6 +50,10 @@ class AgentConfig:
     """Initial bias of the message head's pre-sigmoid output (finite): 0 starts every element at
     z = 0.5 (flax's default, as the paper); -4 starts near silence (z = 0.018, ~0.3 payload bits
     per link). ours: 0, the paper's (docs/budget.md, "Tried, and not kept as defaults")."""
+    gate_bias_init: float = 0.0
+    """With ``ChannelConfig.link_gate``: initial bias of each link's gate in the message head
+    (finite; the gate opens with probability sigmoid(bias) at first). 0 starts every link open
+    half the time; -2 starts it open 12% of the time. ours: 0 (docs/wire.md compares them)."""
     message_gate: str = "sigmoid"
     """How the message head's output becomes the signal z in [0, 1]: ``sigmoid`` (paper) or
     ``hard``, a hard sigmoid whose silence is exact (z = 0, 0 bits) and reversible (a silent
@@ -78,6 +82,8 @@ class AgentConfig:
             raise _bad("AgentConfig", "message_gate", self.message_gate, f"one of {GATES}")
         if not math.isfinite(self.message_bias_init):
             raise _bad("AgentConfig", "message_bias_init", self.message_bias_init, "finite")
+        if not math.isfinite(self.gate_bias_init):
+            raise _bad("AgentConfig", "gate_bias_init", self.gate_bias_init, "finite")
         check_agent_fields(self.neighbours, self.radius, self.aggregate)
 
 
