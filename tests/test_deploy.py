@@ -21,6 +21,7 @@ from sparsecomm.deploy import core, wire
 from sparsecomm.deploy.args import Deploy
 from sparsecomm.deploy.faults import Deadlines, Faults, inject
 from sparsecomm.deploy.launcher import deploy, kill_plan
+from sparsecomm.deploy.report import read_episodes
 from sparsecomm.envs.navigation import NavConfig
 from sparsecomm.errors import RunError
 from sparsecomm.experiment import Eval, evaluate
@@ -38,8 +39,8 @@ def test_datagram_round_trip_and_header_size():
     assert len(data) == wire.HEADER_BYTES + len(packet) and wire.HEADER_BYTES == 13
     dg = wire.parse(data)
     assert dg == wire.Datagram(wire.MSG, 2, 0, 123456, 4095, packet)
-    silence = wire.parse(wire.pack(wire.MSG, 0, 1, 7, 3))  # silence: an empty payload
-    assert silence.payload == b"" and silence.kind == wire.MSG
+    empty = wire.parse(wire.pack(wire.MSG, 0, 1, 7, 3))  # an open gate with null symbols
+    assert empty.payload == b"" and empty.kind == wire.MSG
     with pytest.raises(ValueError, match="step"):
         wire.pack(wire.MSG, 0, 1, 0, 70000)
     with pytest.raises(ValueError, match="sender"):
@@ -62,22 +63,55 @@ def test_parse_never_raises_and_refuses_garbage():
     assert wire.parse(None) is None and wire.parse(b"SC") is None
 
 
-def test_decoders_never_crash_on_garbage_payloads():
-    """A datagram with a good header and a garbage payload: the channel's decoder refuses it
-    with PacketError (a ValueError), whatever the bytes."""
-    rng = np.random.default_rng(1)
-    for cfg in (
+@pytest.mark.parametrize(
+    "cfg",
+    [
         channel.ChannelConfig(),
         channel.ChannelConfig(code="fixed"),
         channel.ChannelConfig(mode="continuous"),
         channel.ChannelConfig(ecc="hamming74"),
-    ):
+        channel.ChannelConfig(link_gate=True, on_silence="hold", check_bits=8),
+        channel.ChannelConfig(check_bits=0),
+    ],
+)
+def test_frame_decoder_never_crashes_on_garbage_payloads(cfg):
+    """A datagram with a good header and a garbage payload: the channel's frame decoder refuses
+    it with PacketError (a ValueError) or, past a short check by chance, returns symbols in
+    range; it raises nothing else, whatever the bytes, and a real frame with bits flipped is
+    refused at least as often as its check promises."""
+    rng = np.random.default_rng(1)
+    for links in (1, 2, 4):
         for _ in range(300):
-            payload = rng.bytes(int(rng.integers(1, 30)))
+            payload = rng.bytes(int(rng.integers(1, 40)))
             try:
-                channel.decode_link(cfg, payload, None)
+                m = channel.decode_sender(cfg, payload, links)
             except channel.PacketError:
-                pass
+                continue
+            assert m.shape == (links, cfg.num_elements)
+            if cfg.sends_symbols:
+                assert 0 <= m.min() and m.max() <= cfg.levels
+    symbols = rng.integers(0, cfg.levels + 1, (2, cfg.num_elements))
+    signal = rng.random((2, cfg.signal_elements)).astype(np.float32)
+    frame = channel.encode_sender(cfg, symbols, signal)
+    np.testing.assert_array_equal(
+        channel.decode_sender(cfg, frame, 2),
+        signal[:, : cfg.num_elements] if cfg.sends_values else symbols,
+    )
+    passed = 0
+    for _ in range(400):
+        bits = np.unpackbits(np.frombuffer(frame, np.uint8))
+        bits[rng.choice(bits.size, int(rng.integers(1, 4)), replace=False)] ^= 1
+        try:
+            channel.decode_sender(cfg, np.packbits(bits).tobytes(), 2)
+            passed += 1
+        except channel.PacketError:
+            pass
+    if cfg.ecc != "none":  # Hamming(7,4) corrects single flips: they pass, as they should
+        return
+    if cfg.check_bits == 32:
+        assert passed == 0
+    elif cfg.check_bits == 8:
+        assert passed < 20  # about 1 in 256 corrupted frames passes an 8-bit check
 
 
 def test_addresses():
@@ -128,6 +162,21 @@ def test_deploy_refuses_bad_input(changes, field):
         Deploy(**changes)
 
 
+def test_deploy_refuses_a_channel_it_cannot_carry_and_takes_hold():
+    base = RLConfig(env=NavConfig(num_agents=2), seed=0)
+    for cfg, field in (
+        (channel.ChannelConfig(mode="reinforced"), "mode 'reinforced'"),
+        (channel.ChannelConfig(levels=3, num_elements=2, code="fixed"), None),
+        (channel.ChannelConfig(on_silence="hold", link_gate=True, check_bits=16), None),
+    ):
+        config = dataclasses.replace(base, channel=cfg)
+        if field is None:
+            core.check_deployable(config)
+            continue
+        with pytest.raises(ValueError, match=r"ChannelConfig\.mode one of .*" + field):
+            core.check_deployable(config)
+
+
 def test_deadlines_and_faults_checks():
     with pytest.raises(ValueError, match=r"Faults\.reorder_delay"):
         Faults(reorder_delay=-1.0)
@@ -156,17 +205,294 @@ def test_a_missing_packet_is_the_null_message_or_the_last_one():
     symbols = np.array([[3] * 10, [15] * 10], np.int32)
     last = np.full((2, 10), 0.25, np.float32)
     ok = np.array([True, False])
-    msgs, kept = core.receive(cfg, k, "null")(key, 4, 1, symbols, ok, last)
+    silent = np.array([False, False])
+    msgs, kept = core.receive(cfg, k, "null")(key, 4, 1, symbols, ok, silent, last)
     assert msgs.shape == (20,)
     heard = np.asarray(msgs).reshape(2, 10)
     u = [channel.dither(channel.dither_key(key, 4, s, 1), (10,)) for s in (0, 2)]
     np.testing.assert_allclose(heard[0], (3 - u[0]) / 15, rtol=1e-6)
     np.testing.assert_allclose(heard[1], -u[1] / 15, rtol=1e-6)  # the null message
     np.testing.assert_array_equal(kept, np.stack([heard[0], last[1]]))  # the last good ones
-    msgs, kept = core.receive(cfg, k, "last")(key, 4, 1, symbols, ok, last)
+    msgs, kept = core.receive(cfg, k, "last")(key, 4, 1, symbols, ok, silent, last)
     heard = np.asarray(msgs).reshape(2, 10)
     np.testing.assert_array_equal(heard[1], last[1])
     np.testing.assert_array_equal(kept, heard)
+
+
+# -- silence, frames and the heard map ------------------------------------------------------
+
+
+def test_heard_map_round_trip_and_never_raises():
+    for n in (0, 1, 2, 7, 8, 9, 254):
+        heard = np.random.default_rng(n).random(n) < 0.5
+        data = wire.pack_map(heard)
+        assert len(data) == wire.map_bytes(n) == -(-n // 8)
+        np.testing.assert_array_equal(wire.parse_map(data, n), heard)
+    assert wire.pack_map([True, False, False, True]) == bytes([0b1001])  # bit s: slot s
+    assert wire.parse_map(bytes([0b100]), 2) is None  # a padding bit set: no map
+    assert wire.parse_map(b"\x01\x00", 2) is None  # another length: no map
+    obs = np.arange(8, dtype=np.float32)
+    values, heard = wire.parse_obs(wire.pack_obs(obs, [True, False]), 8, 2)
+    np.testing.assert_array_equal(values, obs)
+    assert heard.tolist() == [True, False]
+    values, heard = wire.parse_obs(wire.pack_obs(obs), 8, 2)  # no map: wait for everyone
+    assert heard is None and values.size == 8
+    rng = np.random.default_rng(2)
+    for _ in range(2000):
+        data = rng.bytes(int(rng.integers(0, 40)))
+        values, heard = wire.parse_obs(data, 8, int(rng.integers(0, 20)))
+        assert values is None or values.shape == (8,)
+        wire.parse_map(data, int(rng.integers(0, 40)))
+    assert wire.parse_obs(None, 8, 2) == (None, None) and wire.parse_map(None, 2) is None
+
+
+def test_the_world_maps_what_each_sender_reported():
+    from sparsecomm.deploy.world import heard_maps
+
+    # sender 0 spoke to 1 (slot 0) only, sender 1 to nobody, sender 2's report is missing
+    maps = heard_maps({0: [1, 0], 1: [0, 0]}, 3)
+    assert maps[0] == [False, True]  # from 1: silent; from 2: no report, so wait for it
+    assert maps[1] == [True, True]  # from 0: spoke; from 2: no report
+    assert maps[2] == [False, False]  # from 0 (slot 1): silent; from 1: silent
+    assert heard_maps({0: "junk", 1: None}, 2) == [[True], [True]]  # a bad report: wait
+    assert [core.frame_slot(s, 2) for s in (0, 1, 3)] == [1, 1, 2]
+    assert [int(channel.others(4)[s][core.frame_slot(s, 2)]) for s in (0, 1, 3)] == [2, 2, 2]
+    with pytest.raises(ValueError, match="recipient must differ"):
+        core.frame_slot(1, 1)
+
+
+def test_a_held_link_is_the_channels_rule():
+    """Under ``on_silence = "hold"`` the deployed receiver is ``channel.receive``: a silent link
+    delivers its last message with news 0, a link that spoke and arrived its message with news
+    1, a lost one its last message with news 0; the inbox is the messages, then the news."""
+    cfg, k, c = channel.ChannelConfig(on_silence="hold"), 4, 10
+    key = jax.random.key(5)
+    message = np.array([[3] * c, [0] * c, [7] * c], np.int32)
+    last = np.stack([np.full(c, v, np.float32) for v in (0.1, 0.2, 0.3)])
+    silent = np.array([False, True, False])
+    ok = np.array([True, True, False])  # link 2 spoke, and its frame was lost
+    msgs, kept = core.receive(cfg, k, "null")(key, 6, 2, message, ok, silent, last)
+    assert msgs.shape == (3 * c + 3,) == (core.inbox_size(cfg, k),)
+    u = channel.dither_links(key, 6, channel.others(k)[2], 2, c)
+    want = channel.receive(cfg, message, u, ok=ok, last=last, silent=silent)
+    np.testing.assert_array_equal(msgs[: 3 * c], np.asarray(want.z_hat).reshape(-1))
+    np.testing.assert_array_equal(msgs[3 * c :], [1.0, 0.0, 0.0])  # news: arrived only
+    np.testing.assert_array_equal(kept, want.last)
+    heard = np.asarray(msgs[: 3 * c]).reshape(3, c)
+    np.testing.assert_allclose(heard[0], (3 - np.asarray(u[0])) / 15, rtol=1e-6)
+    np.testing.assert_array_equal(heard[1:], last[1:])  # held: silent and lost alike
+    np.testing.assert_array_equal(kept[1:], last[1:])
+    # a gated channel hands the receiver the gate, as the rollout does: the same messages
+    gated = channel.ChannelConfig(on_silence="hold", link_gate=True)
+    msgs_g, kept_g = core.receive(gated, k, "null")(key, 6, 2, message, ok, silent, last)
+    np.testing.assert_array_equal(msgs_g, msgs)
+    np.testing.assert_array_equal(kept_g, kept)
+
+
+def test_an_open_gate_saying_nothing_is_silence():
+    """An open gate whose symbols are all null has no frame (0 wire bits): it is silent on the
+    wire and in the rollout alike (``Sent.speak`` 0), so it sends no datagram, and under
+    ``hold`` its receiver holds the last message (news 0) exactly as the rollout's
+    ``channel.receive(..., speak=sent.speak)`` does; a link that says something speaks."""
+    k, c = 3, 10
+    key = jax.random.key(9)
+    z = np.zeros((1, k - 1, c + 1), np.float32)
+    z[0, :, -1] = 1.0  # both gates open for sure
+    z[0, 1, 0] = 1.0  # link 1 says something, link 0 nothing
+    for on_silence in ("hold", "null"):
+        cfg = channel.ChannelConfig(link_gate=True, on_silence=on_silence)
+        u = channel.dither_links(key, 2, 1, channel.others(k)[1], c + 1)[None]
+        sent = channel.transmit(cfg, jax.numpy.asarray(z), u)
+        assert sent.wire_bits[0, 0] == 0 and sent.wire_bits[0, 1] > 0
+        assert core.link_speaks(sent)[0].tolist() == [False, True]
+        np.testing.assert_array_equal(sent.speak[0], [0.0, 1.0])
+        frame = channel.encode_sender(cfg, np.asarray(sent.symbols[0]), z[0])
+        assert 8 * len(frame) == float(sent.wire_bits.sum())
+        np.testing.assert_array_equal(channel.decode_sender(cfg, frame, k - 1), sent.symbols[0])
+    # at agent 2, whose senders are 0 and 1: sender 1's frame row 1 (link 1 -> 2) said
+    # something, sender 0 was silent to it
+    cfg = channel.ChannelConfig(link_gate=True, on_silence="hold")
+    last = np.full((k - 1, c), 0.5, np.float32)
+    message = np.zeros((k - 1, c), np.int32)
+    message[1] = np.asarray(sent.symbols[0, 1])
+    silent = np.array([True, False])
+    ok = np.ones(k - 1, bool)
+    msgs, kept = core.receive(cfg, k, "null")(key, 2, 2, message, ok, silent, last)
+    ud = channel.dither_links(key, 2, channel.others(k)[2], 2, c)
+    want = channel.receive(cfg, message, ud, last=last, speak=jax.numpy.asarray([0.0, 1.0]))
+    np.testing.assert_array_equal(msgs[: 2 * c], np.asarray(want.z_hat).reshape(-1))
+    np.testing.assert_array_equal(msgs[:c], last[0])  # held
+    np.testing.assert_array_equal(msgs[2 * c :], [0.0, 1.0])  # held, news
+    np.testing.assert_array_equal(kept, want.last)
+
+
+def test_core_replays_the_rollout_of_a_gated_holding_team(tmp_path):
+    """A deployment without sockets: every agent steps with ``core.agent_step``, sends its frame
+    (``channel.encode_sender``; none when silent), every receiver takes its row of each frame
+    (``channel.decode_sender``), treats a sender that did not speak to it as silence and
+    rebuilds with ``core.receive``. Under gates and ``hold`` it plays the rollout's episodes:
+    the same symbols and actions at every step, the frames' bits the library's count."""
+    from sparsecomm.rollout import rollout
+
+    cfg = channel.ChannelConfig(link_gate=True, on_silence="hold")
+    loaded = core.read_team(_team(tmp_path / "team", channel_cfg=cfg))
+    env, team, k, n = loaded.env, loaded.team, loaded.env.num_agents, 3
+    params = jax.tree.map(jax.numpy.asarray, loaded.actor)
+    key = core.batch_key(7)
+    traj = jax.jit(lambda p, key: rollout(team, env, cfg, p, key, n, keep_symbols=True))(
+        params, key
+    )
+    reset, env_step = core.world_fns(env)
+    reset_keys, env_keys = core.world_draws(key, n, env.config.max_steps)
+    chan, gumbel = core.agent_draws(key, n, env.config.max_steps, k, env.num_actions)
+    step_fn, receive_fn = core.agent_step(team, cfg, False), core.receive(cfg, k, "null")
+    others, c = channel.others(k), cfg.num_elements
+    counts = {"silent": 0, "held": 0, "spoke": 0, "steps": 0}
+    for b in range(n):
+        obs, state = reset(reset_keys[b])
+        carry = [np.zeros(team.cfg.gru, np.float32)] * k
+        msgs = [np.zeros(core.inbox_size(cfg, k), np.float32)] * k
+        last = [np.zeros((k - 1, c), np.float32)] * k
+        prev = [np.zeros((k - 1, c), np.int32)] * k
+        ever = np.zeros((k, k - 1), bool)  # a link that spoke before: silence is then held
+        for t in range(env.config.max_steps):
+            if bool(state.done):
+                break
+            counts["steps"] += 1
+            outs = [
+                step_fn(params, i, carry[i], obs[i], msgs[i], gumbel[t, b, i], t, chan[b], prev[i])
+                for i in range(k)
+            ]
+            frames = []
+            for i, out in enumerate(outs):
+                np.testing.assert_array_equal(out.symbols, traj.symbols[t, b, i])
+                assert int(out.action) == int(traj.actions[t, b, i]), (b, t, i)
+                frame = channel.encode_sender(cfg, np.asarray(out.symbols), np.asarray(out.signal))
+                assert 8 * len(frame) == round(float(out.wire))
+                frames.append(frame if np.asarray(out.spoke).any() else None)
+            assert sum(8 * len(f or b"") for f in frames) == round(float(traj.wire_bits[t, b]))
+            for j in range(k):
+                message = np.zeros((k - 1, c), np.int32)
+                silent = np.zeros(k - 1, bool)
+                for r, s in enumerate(others[j]):
+                    slot = core.frame_slot(int(s), j)
+                    if not outs[s].spoke[slot]:
+                        silent[r] = True  # nothing reached j from s
+                        counts["silent"] += 1
+                        counts["held"] += bool(ever[s, slot])
+                        continue
+                    counts["spoke"] += 1
+                    ever[s, slot] = True
+                    message[r] = channel.decode_sender(cfg, frames[s], k - 1)[slot]
+                ok = np.ones(k - 1, bool)
+                msgs[j], last[j] = receive_fn(chan[b], t, j, message, ok, silent, last[j])
+            carry = [out.carry for out in outs]
+            prev = [np.asarray(out.symbols) for out in outs]
+            actions = jax.numpy.asarray([int(out.action) for out in outs])
+            obs, state, *_ = env_step(env_keys[t, b], state, actions)
+    assert counts["steps"] == int(np.asarray(traj.valid).sum())
+    assert counts["held"] > 0 and counts["spoke"] > 0, counts  # silences held, messages heard
+
+
+def _drain(sock, seen: list, forward=None, wait: float = 0.02) -> None:
+    """Every datagram waiting on ``sock``: parsed into ``seen`` (with its size), and sent on
+    to ``forward``."""
+    sock.settimeout(wait)
+    while True:
+        try:
+            data, _ = sock.recvfrom(wire.MAX_DATAGRAM)
+        except (TimeoutError, BlockingIOError):
+            return
+        seen.append((wire.parse(data), len(data)))
+        if forward is not None:
+            sock.sendto(data, forward)
+
+
+@pytest.mark.parametrize("loss", [0.0, 0.3])
+def test_silent_links_put_no_datagram_on_the_network(tmp_path, loss):
+    """Three agents in this process, their peers' addresses pointing at taps that count every
+    datagram the network carries before passing it on. A link that did not speak puts no
+    datagram on the network; a speaking link one (its sender's frame); a frame that the heard
+    map promised and the fault layer dropped is a loss at its receiver, a silence is not; an
+    observation without a map makes the receiver wait for every sender and count each one not
+    heard as missing."""
+    from sparsecomm.deploy.agent import Agent, AgentArgs
+    from sparsecomm.deploy.world import heard_maps
+
+    cfg = channel.ChannelConfig(link_gate=True, on_silence="hold")
+    team = _team(tmp_path / "team", channel_cfg=cfg)
+    k, steps, host = 3, 8, "127.0.0.1"
+    world = wire.udp_socket((host, 0))
+    taps = [wire.udp_socket((host, 0)) for _ in range(k)]
+    ports = wire.free_ports(host, k)
+    agents = []
+    try:
+        for i in range(k):
+            args = AgentArgs(
+                team=team,
+                agent=i,
+                peers=tuple(f"{host}:{tap.getsockname()[1]}" for tap in taps),
+                world=f"{host}:{world.getsockname()[1]}",
+                seed=3,
+                episodes=1,
+                listen=f"{host}:{ports[i]}",
+                faults=Faults(loss=loss, seed=4),
+                deadlines=Deadlines(message=0.05),
+            )
+            agents.append(Agent(args))
+        rng = np.random.default_rng(0)
+        seen, reports = [], {}
+        spoke = {i: [False] * (k - 1) for i in range(k)}
+        for t in range(steps + 1):
+            for j, tap in enumerate(taps):  # the frames of step t - 1, on to their recipients
+                _drain(tap, seen, (host, ports[j]))
+            maps = heard_maps(spoke, k)
+            spoke = {}
+            for i, agent in enumerate(agents):
+                heard = None if t == steps else maps[i]  # the last step: no map
+                obs = rng.normal(size=agent._obs_dim()).astype(np.float32)
+                data = wire.pack(wire.OBS, wire.WORLD, i, 0, t, wire.pack_obs(obs, heard))
+                assert agent._act(wire.parse(data)) is None
+                world.settimeout(5.0)
+                dg = wire.parse(world.recvfrom(wire.MAX_DATAGRAM)[0])
+                assert (dg.kind, dg.sender, dg.step) == (wire.ACT, i, t)
+                reports[i, t] = json.loads(dg.payload)
+                spoke[i] = reports[i, t]["spoke"]
+    finally:
+        for sock in (world, *taps, *(a.sock for a in agents)):
+            sock.close()
+    carried = {}
+    for dg, size in seen:
+        assert dg is not None and dg.kind == wire.MSG
+        carried.setdefault((dg.sender, dg.recipient, dg.step), []).append(size)
+    silent = speaking = lost = 0
+    for (i, t), report in reports.items():
+        for r, j in enumerate(channel.others(k)[i]):
+            sizes = carried.get((i, int(j), t), [])
+            if t == steps:
+                continue  # sent after the last drain
+            if not report["spoke"][r]:
+                assert sizes == [], (i, j, t)  # silence: nothing on the network
+                silent += 1
+                continue
+            speaking += 1
+            assert report["sent_n"][r] == len(sizes) and report["sent"][r] == sum(sizes)
+            assert sizes in ([], [13 + report["frame"] // 8])  # the frame, once, or lost
+            lost += not sizes
+    assert silent > 0 and speaking > 0
+    assert (lost > 0) == (loss > 0)
+    for (j, t), report in reports.items():  # the receivers' losses: promised, not arrived
+        if t == 0:
+            continue
+        senders = channel.others(k)[j]
+        promised = [reports[s, t - 1]["spoke"][core.frame_slot(int(s), j)] for s in senders]
+        arrived = [bool(carried.get((int(s), j, t - 1))) for s in senders]
+        if t < steps:
+            want = sum(p and not a for p, a in zip(promised, arrived, strict=True))
+            assert report["missing"] == want and report["no_map"] == 0, (j, t)
+        else:  # no map: every sender not heard is missing, silent ones included
+            assert report["no_map"] == 1
+            assert report["missing"] == sum(not a for a in arrived), (j, t)
 
 
 # -- real deployments -----------------------------------------------------------------------
@@ -211,17 +537,47 @@ def test_three_agent_processes_play_evals_episodes(tmp_path):
     assert sim["identical_episodes"] == episodes, sim["different_episodes"]
     for name in ("success_rate", "episode_length", "bits_per_step", "wire_bits_per_step"):
         assert row[name] == pytest.approx(sim[name], rel=1e-12), name
-    # what crossed the wire: exactly the library's packets, plus a 13-byte header each
-    assert row["packet_bits_per_step"] == pytest.approx(row["wire_bits_per_step"])
-    header = row["datagram_bits_per_step"] - row["packet_bits_per_step"]
-    assert header == pytest.approx(row["header_bits_per_step"]) == 6 * 8 * 13
+    # what crossed the wire: exactly the library's frames, one per speaking sender, one copy
+    # (and a 13-byte header) per speaking link, and nothing for a silent link
+    assert row["frame_bits_per_step"] == pytest.approx(row["wire_bits_per_step"])
+    assert row["datagrams_per_step"] == pytest.approx(row["speaking_links_per_step"])
+    assert row["network_datagrams_per_step"] == pytest.approx(row["datagrams_per_step"])
+    assert row["header_bits_per_step"] == pytest.approx(8 * 13 * row["datagrams_per_step"])
+    assert 0 < row["datagrams_per_step"] <= 6
+    network = row["datagram_bits_per_step"] + 8 * (13 + 28) * row["datagrams_per_step"]
+    assert row["network_bits_per_step"] == pytest.approx(network)
+    # eval's count of the datagrams and the frames they carry
+    assert row["datagrams_per_step"] == pytest.approx(sim["datagrams_per_step"], rel=1e-12)
+    assert row["datagram_bits_per_step"] == pytest.approx(sim["datagram_bits_per_step"], rel=1e-12)
+    assert row["map_bits_per_step"] == 3 * 8  # one byte per observation: 2 senders each
     assert row["missing_messages_per_step"] == 0 and row["missing_actions_per_step"] == 0
+    assert row["steps_without_map"] == 0
     low, high = row["ci"]["bits_per_step"]
     assert low <= row["bits_per_step"] <= high
     saved = json.loads((tmp_path / "deploy" / "deploy.json").read_text())
     assert saved["runs"][0]["bits_per_step"] == row["bits_per_step"]
-    links = (tmp_path / "deploy" / "run_0" / "links.csv").read_text().splitlines()
-    assert len(links) - 1 == 6 * round(row["episode_length"] * episodes)  # per link and step
+    _check_tables(tmp_path / "deploy" / "run_0", k=3, steps=round(row["episode_length"] * episodes))
+
+
+def _check_tables(folder: Path, k: int, steps: int) -> tuple[list, list]:
+    """links.csv (one row per link and step) and frames.csv (one per sender and step) agree:
+    a speaking link's datagram is the header and its sender's frame, a silent link has none;
+    returns their rows."""
+    import csv
+
+    with open(folder / "links.csv") as f:
+        links = list(csv.DictReader(f))
+    with open(folder / "frames.csv") as f:
+        frames = list(csv.DictReader(f))
+    assert len(links) == k * (k - 1) * steps and len(frames) == k * steps
+    frame_of = {(r["episode"], r["step"], r["sender"]): r for r in frames}
+    for r in links:
+        frame = frame_of[(r["episode"], r["step"], r["sender"])]
+        due = int(r["datagram_bytes"])
+        assert due == (13 + int(frame["frame_bits"]) // 8 if r["spoke"] == "1" else 0), r
+    for r in frames:
+        assert int(r["frame_bits"]) == int(r["sim_wire_bits"]), r
+    return links, frames
 
 
 @pytest.mark.slow
@@ -239,15 +595,29 @@ def test_deploy_matches_sparsecomm_eval(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_team_with_link_gates_deployed_plays_evals_episodes(tmp_path):
-    """Gated links (``ChannelConfig.link_gate``): a closed link's symbols are all null on the
-    wire and in the simulation alike, so deploy still plays eval's episodes exactly."""
-    team = _team(tmp_path / "team", channel_cfg=channel.ChannelConfig(link_gate=True))
+@pytest.mark.parametrize("on_silence", ["null", "hold"])
+def test_a_team_with_link_gates_deployed_plays_evals_episodes(tmp_path, on_silence):
+    """Gated links (``ChannelConfig.link_gate``): a closed link sends no datagram, and its
+    receiver, told so by the world's heard map, makes of it what the simulation does (the null
+    message, or under ``on_silence = "hold"`` the link's last message with news 0), so deploy
+    still plays eval's episodes exactly, and the network carries one datagram per speaking
+    link."""
+    cfg = channel.ChannelConfig(link_gate=True, on_silence=on_silence)
+    team = _team(tmp_path / "team", channel_cfg=cfg)
     (row,) = deploy(Deploy(run=team, episodes=4, out=tmp_path / "deploy"))["runs"]
     sim = row["simulation"]
     assert sim["identical_episodes"] == 4, sim["different_episodes"]
     assert row["wire_bits_per_step"] == pytest.approx(sim["wire_bits_per_step"], rel=1e-12)
-    assert 0 < row["packet_bits_per_step"] < row["datagram_bits_per_step"]
+    assert row["frame_bits_per_step"] == pytest.approx(row["wire_bits_per_step"])
+    assert row["datagrams_per_step"] == pytest.approx(sim["datagrams_per_step"], rel=1e-12)
+    assert row["datagram_bits_per_step"] == pytest.approx(sim["datagram_bits_per_step"], rel=1e-12)
+    # closed gates: fewer datagrams than links, and only those on the network
+    assert 0 < row["network_datagrams_per_step"] == row["datagrams_per_step"] < 6
+    assert row["missing_messages_per_step"] == 0
+    steps = round(row["episode_length"] * 4)
+    links, _ = _check_tables(tmp_path / "deploy" / "run_0", k=3, steps=steps)
+    silent = [r for r in links if r["spoke"] == "0"]
+    assert silent and all(r["sent_datagrams"] == "0" and r["sent_bytes"] == "0" for r in silent)
 
 
 @pytest.mark.slow
@@ -272,6 +642,33 @@ def test_faults_and_restarts_are_survived(tmp_path):
     assert row["kills"] >= 1 and row["restarts"] >= row["kills"]
     assert row["rejoins"] >= 1 and row["missing_actions_per_step"] > 0
     assert row["missing_messages_per_step"] > 0
+
+
+@pytest.mark.slow
+def test_a_gated_holding_team_survives_loss_and_counts_it(tmp_path):
+    """10% of the frames' datagrams dropped: a gate + hold team still plays every episode, each
+    dropped frame is a loss at its receiver (the heard map promised it), the network carries
+    only the datagrams not dropped, and the report counts both."""
+    cfg = channel.ChannelConfig(link_gate=True, on_silence="hold")
+    team = _team(tmp_path / "team", max_steps=12, radius=0.05, channel_cfg=cfg)
+    args = Deploy(run=team, episodes=4, out=tmp_path / "deploy", loss=0.1, fault_seed=2)
+    (row,) = deploy(args)["runs"]
+    assert row["episodes"] == 4 and row["missing_actions_per_step"] == 0
+    steps = round(row["episode_length"] * 4)
+    links, _ = _check_tables(tmp_path / "deploy" / "run_0", k=3, steps=steps)
+    last = {e["episode"]: e["length"] - 1 for e in read_episodes(tmp_path / "deploy" / "run_0")}
+    # dropped: due and not sent; those of an episode's last step are heard by nobody
+    dropped = [r for r in links if r["datagram_bytes"] != "0" and r["sent_datagrams"] == "0"]
+    heard = [r for r in dropped if int(r["step"]) < last[int(r["episode"])]]
+    assert len(heard) > 0
+    lost = round(row["missing_messages_per_step"] * steps)
+    # every dropped frame is a loss at its receiver (a late one on a loaded machine would add)
+    assert len(heard) <= lost <= len(heard) + 0.05 * row["datagrams_per_step"] * steps
+    assert row["garbage_dropped"] == 0
+    sent = sum(r["datagram_bytes"] != "0" for r in links) - len(dropped)
+    assert round(row["network_datagrams_per_step"] * steps) == sent
+    assert row["datagrams_per_step"] < 6  # silent links still send nothing
+    assert row["network_bits_per_step"] < row["datagram_bits_per_step"] + 8 * (13 + 28) * 6
 
 
 @pytest.mark.slow

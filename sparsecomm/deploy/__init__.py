@@ -1,8 +1,9 @@
 """Decentralised execution of a trained team: one OS process per agent, one for the world, the
-channel's real packets as UDP datagrams between them (issue 19, docs/deploy.md).
+channel's real frames as UDP datagrams between them (issue 19, docs/deploy.md).
 
-* :mod:`~sparsecomm.deploy.wire`: the datagram around every packet (13-byte header with
-  CRC-16; silence is an explicit empty payload), address and socket helpers;
+* :mod:`~sparsecomm.deploy.wire`: the datagram around every frame (13-byte header with CRC-16;
+  a silent link sends none), the heard map the world appends to each observation (which
+  senders spoke to the agent last step), address and socket helpers;
 * :mod:`~sparsecomm.deploy.faults`: seeded loss, duplication, reordering and garbage on the
   agents' links, and the deadlines of every wait;
 * :mod:`~sparsecomm.deploy.core`: what a process computes (the eval draws regenerated from the

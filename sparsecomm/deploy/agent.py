@@ -3,20 +3,27 @@
 It binds its UDP address, says hello to the world, and then, for every observation the world
 sends for step ``t`` of episode ``b``:
 
-1. gathers the packets its peers sent it at step ``t - 1`` (one datagram per link, silence
-   included), waiting for them at most ``Deadlines.message`` from the observation's arrival;
-   a packet still missing then is the null message (or the link's last one, ``on_drop``);
-2. rebuilds each message with the dither regenerated from ``dither_key(chan[b], t - 1, s, I)``
-   (``core.receive``: the channel's receiver side, ``channel.receive``);
+1. reads the observation's heard map (``wire.parse_obs``): which of its senders spoke to it at
+   step ``t - 1``; it waits for those senders' frames only, at most ``Deadlines.message`` from
+   the observation's arrival; a promised frame still missing then is a **loss** (the null
+   message, or the link's last one: ``on_drop``, and always under ``on_silence = "hold"``); a
+   sender the map says was silent is silence at once (no datagram was sent). Without a map it
+   waits for every sender until the deadline, and a sender not heard is a loss;
+2. takes its own row of each frame (``channel.decode_sender``, ``core.frame_slot``) and rebuilds
+   each message with the dither regenerated from ``dither_key(chan[b], t - 1, s, I)``
+   (``core.receive``: the channel's receiver side, ``channel.receive``, news inputs included);
 3. steps its actor (``core.agent_step``: ``Team.act``, the action rule, ``channel.transmit``);
-4. sends each peer ``j`` its packet (``channel.encode_link``) through the fault layer, then the
-   world its action with what it sent and heard this step (counts, JSON).
+4. when at least one of its links speaks, encodes its frame (``channel.encode_sender``) and sends
+   one copy to each recipient whose link speaks, through the fault layer; a silent agent sends
+   its peers nothing. Then it sends the world its action with what it sent (which links spoke,
+   the frame's bits, the datagrams) and heard (frames missing, duplicates, stale and garbage
+   datagrams dropped), as JSON.
 
 An observation of step 0, or the first observation this process sees, starts from a zero GRU
 state: a restarted agent rejoins the episode where it is, with its recurrent state reset (and,
-with ``on_drop = last``, no last messages). A duplicate observation is answered with the same
-action; an older one is ignored. The agent exits on the world's ``bye`` (0), after
-``Deadlines.idle`` without a word from the world (3), or on SIGINT/SIGTERM.
+with ``on_drop = last`` or ``on_silence = hold``, no last messages). A duplicate observation is
+answered with the same action; an older one is ignored. The agent exits on the world's ``bye``
+(0), after ``Deadlines.idle`` without a word from the world (3), or on SIGINT/SIGTERM.
 """
 
 from __future__ import annotations
@@ -140,6 +147,7 @@ class Agent:
         self.k, self.i = k, args.agent
         self.senders = [int(s) for s in channel.others(k)[self.i]]  # whom I hear, slot order
         self.recipients = self.senders  # whom I send to, slot order (the same list)
+        self.rows = [core.frame_slot(s, self.i) for s in self.senders]  # my row in their frames
         self.peers = [wire.parse_address(p) for p in args.peers]
         self.world = wire.parse_address(args.world)
         listen = wire.parse_address(args.listen) if args.listen else self.peers[self.i]
@@ -156,10 +164,11 @@ class Agent:
         self.receive_fn = lambda key, t, *rest: receive_fn(key, t, self.i, *rest)
         c = self.cfg.num_elements
         self.c, self.h = c, loaded.team.cfg.gru
+        self.inbox_size = core.inbox_size(self.cfg, k)
         self.inbox: dict[tuple[int, int, int], list[bytes]] = {}
         self.episode = -1
         self.last_act: tuple[tuple[int, int], bytes] | None = None
-        self.counts = {"dup": 0, "stale": 0, "bad": 0}
+        self.counts = {"dup": 0, "stale": 0, "bad": 0, "no_map": 0}
         self._reset_episode(-1)
         self._warm_up()
 
@@ -168,18 +177,17 @@ class Agent:
         self.episode, self.t = episode, -1
         self.carry = jnp.zeros((self.h,), jnp.float32)
         self.sent_prev = np.zeros((self.k - 1, self.c), np.int32)  # my links' symbols at t - 1
-        self.heard_prev = np.zeros((self.k - 1, self.c), np.int64)  # decoded symbols at t - 1
         self.last = jnp.zeros((self.k - 1, self.c), jnp.float32)
 
     def _warm_up(self) -> None:
         """Compile every jitted function before saying hello."""
         obs = np.zeros(self._obs_dim(), np.float32)
-        msgs = np.zeros((self.k - 1) * self.c, np.float32)
+        msgs = np.zeros(self.inbox_size, np.float32)
         self.step_fn(
             self.params, self.carry, obs, msgs, self.gumbel[0, 0], 0, self.chan[0], self.sent_prev
         ).action.block_until_ready()
         ok = np.zeros(self.k - 1, bool)
-        self.receive_fn(self.chan[0], 0, self._message_buffer(), ok, self.last)
+        self.receive_fn(self.chan[0], 0, self._message_buffer(), ok, ~ok, self.last)
 
     def _obs_dim(self) -> int:
         return 4 + 2 * (self.k - 1)
@@ -282,20 +290,29 @@ class Agent:
         self.counts["bad"] += 1
         return None
 
-    def _gather(self, episode: int, t: int, until: float):
-        """Each sender's message of step ``t`` (decoded), waiting until ``until`` at most."""
+    def _decode(self, r: int, payload: bytes):
+        """My row of sender slot ``r``'s frame ``payload`` (``None``: not a frame of this
+        channel)."""
+        try:
+            frame = self.channel.decode_sender(self.cfg, payload, self.k - 1)
+        except ValueError:  # channel.PacketError: garbage behind a good header
+            self.counts["bad"] += 1
+            return None
+        return np.asarray(frame)[self.rows[r]]
+
+    def _gather(self, episode: int, t: int, until: float, expect: np.ndarray):
+        """My row of each ``expect``-ed sender's frame of step ``t`` (decoded), waiting until
+        ``until`` at most; ``None`` for a sender not expected or not heard."""
         got = [None] * (self.k - 1)
         while True:
             for r, s in enumerate(self.senders):
-                if got[r] is not None:
+                if got[r] is not None or not expect[r]:
                     continue
                 for payload in self.inbox.pop((episode, t, s), []):
-                    try:
-                        got[r] = self.channel.decode_link(self.cfg, payload, self.heard_prev[r])
+                    got[r] = self._decode(r, payload)
+                    if got[r] is not None:
                         break
-                    except ValueError:  # channel.PacketError: garbage behind a good header
-                        self.counts["bad"] += 1
-            if all(g is not None for g in got):
+            if all(g is not None for g, e in zip(got, expect, strict=True) if e):
                 return got, None
             event = self._receive(until)
             if event != "msg":  # the deadline, a bye, or the world moved on (act on this step
@@ -315,25 +332,29 @@ class Agent:
             self._reset_episode(b)
         elif t <= self.t:
             return None
-        values = np.frombuffer(obs.payload, ">f4").astype(np.float32)
-        if values.size != self._obs_dim():
+        values, heard = wire.parse_obs(obs.payload, self._obs_dim(), self.k - 1)
+        if values is None:
             self.counts["bad"] += 1
             return None
         newer = None
         missing = 0
         if t == 0 or not self.cfg.speaks:  # nothing heard yet, or nothing ever sent
-            msgs = np.zeros((self.k - 1) * self.c, np.float32)
+            msgs = np.zeros(self.inbox_size, np.float32)
         else:
-            got, newer = self._gather(b, t - 1, arrived + d.message)
-            ok = np.array([g is not None for g in got])
+            if heard is None:  # no map: wait for every sender; one not heard is a loss
+                self.counts["no_map"] += 1
+                expect = np.ones(self.k - 1, bool)
+            else:
+                expect = heard
+            got, newer = self._gather(b, t - 1, arrived + d.message, expect)
+            silent = ~expect  # the map says: nothing was sent
+            ok = np.array([g is not None for g in got], bool) | silent
             missing = int((~ok).sum())
             message = self._message_buffer()
             for r, g in enumerate(got):
                 if g is not None:
                     message[r] = g
-                    if self.cfg.sends_symbols:
-                        self.heard_prev[r] = g
-            msgs, self.last = self.receive_fn(self.chan[b], t - 1, message, ok, self.last)
+            msgs, self.last = self.receive_fn(self.chan[b], t - 1, message, ok, silent, self.last)
         self._prune(b, t)
         out = self.step_fn(
             self.params,
@@ -347,29 +368,32 @@ class Agent:
         )
         self.carry, self.t = out.carry, t
         symbols, signal = np.asarray(out.symbols), np.asarray(out.signal)
+        spoke = np.asarray(out.spoke, bool)
         report = {
             "a": int(out.action),
             "payload": [int(x) for x in np.asarray(out.payload)],
-            "sim_wire": [int(x) for x in np.asarray(out.wire)],
-            "packet": [],
-            "datagram": [],
-            "sent": [],
-            "sent_n": [],
+            "sim_wire": round(float(out.wire)),
+            "spoke": [int(x) for x in spoke],
+            "frame": 0,
+            "datagram": [0] * (self.k - 1),
+            "sent": [0] * (self.k - 1),
+            "sent_n": [0] * (self.k - 1),
             "missing": missing,
             "rejoined": rejoined,
         }
-        for r, j in enumerate(self.recipients):
-            if not self.cfg.speaks:
-                break
-            packet = self.channel.encode_link(self.cfg, symbols[r], signal[r], self.sent_prev[r])
-            dg = wire.pack(wire.MSG, self.i, j, b, t, packet)
-            sends = inject(self.args.faults, dg, b, t, self.i, j)
-            for delay, data in sends:
-                self.out.send(data, self.peers[j], delay)
-            report["packet"].append(8 * len(packet))
-            report["datagram"].append(len(dg))
-            report["sent"].append(sum(len(data) for _, data in sends))
-            report["sent_n"].append(len(sends))
+        if self.cfg.speaks and spoke.any():  # one frame, one copy per speaking recipient
+            frame = self.channel.encode_sender(self.cfg, symbols, signal)
+            report["frame"] = 8 * len(frame)
+            for r, j in enumerate(self.recipients):
+                if not spoke[r]:
+                    continue
+                dg = wire.pack(wire.MSG, self.i, j, b, t, frame)
+                sends = inject(self.args.faults, dg, b, t, self.i, j)
+                for delay, data in sends:
+                    self.out.send(data, self.peers[j], delay)
+                report["datagram"][r] = len(dg)
+                report["sent"][r] = sum(len(data) for _, data in sends)
+                report["sent_n"][r] = len(sends)
         self.sent_prev = symbols
         report.update(self.counts)
         self.counts = dict.fromkeys(self.counts, 0)

@@ -12,9 +12,14 @@ crosses the wire.
 An agent's step is :meth:`sparsecomm.agents.Team.act` on a batch of one episode in which only
 the agent's own row is real (the other rows are zeros and thrown away), followed by the
 rollout's action rule and the channel's sender side (``channel.transmit``) on the agent's own
-links; its receiver side is the channel's (``channel.receive``), and its packets are
-``channel.encode_link`` / ``channel.decode_link``: this module draws no dither and rebuilds no
-message of its own, so every number comes from the library's own functions.
+links; its receiver side is the channel's (``channel.receive``, with the news inputs of
+``on_silence = "hold"`` appended as the rollout appends them), and its frames are
+``channel.encode_sender`` / ``channel.decode_sender``: this module draws no dither and rebuilds
+no message of its own, so every number comes from the library's own functions.
+
+Which links speak (:attr:`StepOut.spoke`, :func:`link_speaks`) is the rollout's rule: a link
+speaks when its share of its sender's frame is not empty (``Sent.wire_bits > 0``); a silent link
+sends no datagram.
 """
 
 from __future__ import annotations
@@ -45,13 +50,17 @@ def read_team(folder: str | Path, weights: bool = True) -> runfolder.ExportedTea
 
 
 def check_deployable(config) -> None:
-    """Refuse a team whose channel or size the runtime does not carry."""
-    if not config.channel.deployable:
+    """Refuse a team whose channel or size the runtime does not carry: the channel must be
+    ``ChannelConfig.deployable`` (the channel's own rule), at most :data:`MAX_AGENTS` agents, the
+    ``concat`` inbox and no routing."""
+    cfg = config.channel
+    if not cfg.deployable:
         deployable = [m for m in channel.CHANNEL_MODES if channel.ChannelConfig(m).deployable]
         raise ValueError(
-            f"Deploy: the team's ChannelConfig.mode must be one of {deployable} (a mode whose "
-            f"symbols need no draw but the shared dither) and its on_silence 'null', got mode "
-            f"{config.channel.mode!r}, on_silence {config.channel.on_silence!r}"
+            "Deploy: the team's ChannelConfig must be deployable (ChannelConfig.deployable: "
+            f"ChannelConfig.mode one of {deployable}, a mode whose symbols need no draw but the "
+            "shared dither, and ChannelConfig.code one that frames carry, not 'fitted'), got "
+            f"mode {cfg.mode!r}, code {cfg.code!r}"
         )
     if config.env.num_agents > MAX_AGENTS:
         raise ValueError(f"Deploy: at most {MAX_AGENTS} agents, got {config.env.num_agents}")
@@ -118,16 +127,28 @@ class StepOut(NamedTuple):
     symbols: jax.Array  # (K-1, C) int32 symbols of its links, by slot (zeros unless discrete)
     signal: jax.Array  # (K-1, C') float32 z (the ``continuous`` mode sends it; C' with a gate)
     payload: jax.Array  # (K-1,) payload bits of each link (the library's count)
-    wire: jax.Array  # (K-1,) bits of each link's packet (the library's count)
+    wire: jax.Array  # () bits of its frame: Sent.wire_bits summed over its links
+    spoke: jax.Array  # (K-1,) bool: the link speaks this step (module docstring)
+
+
+def link_speaks(sent: channel.Sent) -> jax.Array:
+    """(..., K-1) bool: the links of ``sent`` (``channel.transmit``) that speak, so that a copy
+    of their sender's frame must reach their recipients: those whose frame share is not empty
+    (``Sent.wire_bits > 0``), the rollout's own rule (it counts them ``speaking`` and, under
+    ``hold``, holds the others). A closed gate, and an open one whose symbols are all null, is
+    silent (``Sent.speak`` is 0 there too)."""
+    return sent.wire_bits > 0
 
 
 @functools.lru_cache(maxsize=16)
 def agent_step(team, cfg: ChannelConfig, greedy: bool):
     """The jitted step of an agent: ``(params, i, carry (H,), obs, msgs ((K-1) C,), gumbel
     (A,), t, chan_key, prev (K-1, C)) -> StepOut`` for agent ``i`` (a traced argument: every
-    agent runs the same compiled program); ``chan_key``: the episode's channel key, from which
-    the dither of its links at ``t`` is drawn; ``prev``: its links' symbols at ``t - 1``. The
-    links are the channel's sender side, ``channel.transmit``, on the agent's own row."""
+    agent runs the same compiled program); ``msgs``: its inbox, ``(K-1) C`` messages then,
+    under ``on_silence = "hold"``, ``K-1`` news inputs (:func:`receive`); ``chan_key``: the
+    episode's channel key, from which the dither of its links at ``t`` is drawn; ``prev``: its
+    links' symbols at ``t - 1``. The links are the channel's sender side,
+    ``channel.transmit``, on the agent's own row."""
     k = team.num_agents
 
     def step(params, i, carry, obs, msgs, gumbel, t, chan_key, prev):
@@ -145,13 +166,15 @@ def agent_step(team, cfg: ChannelConfig, greedy: bool):
         if cfg.quantizes:
             u = channel.dither_links(chan_key, t, i, recipients, cfg.signal_elements)[None]
         sent = channel.transmit(cfg, z[0, i][None], u, prev=prev[None])
+        spoke = link_speaks(sent)[0]
         return StepOut(
             carry[0, i],
             action.astype(jnp.int32),
             sent.symbols[0],
             z[0, i],
             sent.payload_bits[0],
-            sent.wire_bits[0],
+            sent.wire_bits[0].sum(),
+            spoke,
         )
 
     return jax.jit(step)
@@ -160,25 +183,52 @@ def agent_step(team, cfg: ChannelConfig, greedy: bool):
 @functools.lru_cache(maxsize=16)
 def receive(cfg: ChannelConfig, num_agents: int, on_drop: str):
     """Jitted receiver side of an agent, the channel's own (``channel.receive``):
-    ``(chan_key, t, recipient, message (K-1, C), ok (K-1,), last (K-1, C)) -> (msgs ((K-1)
-    C,), last (K-1, C))``.
+    ``(chan_key, t, recipient, message (K-1, C), ok (K-1,), silent (K-1,), last (K-1, C)) ->
+    (msgs, last (K-1, C))``, ``msgs`` the actor's inbox as the rollout builds it: the ``(K-1) C``
+    messages, then under ``on_silence = "hold"`` the ``K-1`` news inputs (1: news, 0: held).
 
     Link ``s`` (its senders in increasing order, ``channel.others``) sent ``message[s]`` at
     step ``t``: symbols (rebuilt with the dither of ``dither_key(chan_key, t, s, recipient)``,
-    regenerated here) or the float values of a ``continuous`` channel. A link not ``ok`` (its
-    datagram missing at the deadline) is the null message or, with ``on_drop = "last"``, the
-    link's last good reconstruction ``last`` (zeros before the first)."""
+    regenerated here) or the float values of a ``continuous`` channel. ``silent``: the links
+    that sent nothing (no datagram; their ``message`` rows are the null symbols): the null
+    message, or under ``on_silence = "hold"`` the link's last message with news 0. A link not
+    ``ok`` (a frame it promised missing at the deadline: a loss) is the null message or, with
+    ``on_drop = "last"`` or under ``hold``, the link's last good reconstruction ``last``
+    (zeros before the first); a silent link is ``ok``. As the rollout, a gated channel hands
+    ``channel.receive`` the gate (``speak``: 0 where silent) and a holding one ``silent``."""
     table = jnp.asarray(channel.others(num_agents))
 
-    def rebuild(chan_key, t, recipient, message, ok, last):
+    def rebuild(chan_key, t, recipient, message, ok, silent, last):
         u = None
         if cfg.quantizes:
             senders = table[recipient]
             u = channel.dither_links(chan_key, t, senders, recipient, cfg.num_elements)
-        got = channel.receive(cfg, message, u, ok=ok, last=last, on_drop=on_drop)
-        return got.z_hat.reshape(-1), got.last
+        said = {}
+        if cfg.link_gate:
+            said["speak"] = (~silent).astype(jnp.float32)
+        elif cfg.holds:
+            said["silent"] = silent
+        got = channel.receive(cfg, message, u, ok=ok, last=last, on_drop=on_drop, **said)
+        msgs = got.z_hat.reshape(-1)
+        if got.news is not None:  # which messages are news, after the messages (the rollout's)
+            msgs = jnp.concatenate([msgs, got.news])
+        return msgs, got.last
 
     return jax.jit(rebuild)
+
+
+def inbox_size(cfg: ChannelConfig, num_agents: int) -> int:
+    """Length of an actor's inbox (:func:`receive`'s ``msgs``): ``(K-1) C`` messages, plus
+    ``K-1`` news inputs under ``on_silence = "hold"``."""
+    return (num_agents - 1) * (cfg.num_elements + int(cfg.holds))
+
+
+def frame_slot(sender: int, recipient: int) -> int:
+    """The row of link ``sender -> recipient`` in the sender's frame: the recipient's slot
+    among ``channel.others(K)[sender]`` (the other agents in increasing order)."""
+    if sender == recipient:
+        raise ValueError(f"recipient must differ from sender {sender}, got {recipient}")
+    return recipient - int(recipient > sender)
 
 
 @functools.lru_cache(maxsize=4)

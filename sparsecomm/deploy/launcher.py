@@ -265,7 +265,7 @@ class Background:
 def reference(env, team, channel, params, seed: int, episodes: int, greedy: bool) -> dict:
     """The same episodes played in simulation (``rollout`` with the batch key of ``sparsecomm
     eval``) over ``channel`` (``ChannelConfig``): per-episode success, length, payload and
-    wire bits."""
+    wire bits, datagrams (speaking links) and the frame bits they carry."""
     import jax
 
     from sparsecomm.deploy.core import batch_key
@@ -280,18 +280,23 @@ def reference(env, team, channel, params, seed: int, episodes: int, greedy: bool
         "length": valid.sum(0),
         "payload_bits": (np.asarray(traj.payload_bits) * valid).sum(0),
         "sim_wire_bits": (np.asarray(traj.wire_bits) * valid).sum(0),
+        "datagrams": (np.asarray(traj.speaking) * valid).sum(0),
+        "datagram_bits": (np.asarray(traj.datagram_bits) * valid).sum(0),
     }
 
 
 def compare(episodes: list[dict], ref: dict) -> dict:
     """The simulation's figures of the same episodes, and how many episodes are identical
-    (success, length, payload bits and wire bits all equal)."""
+    (success, length, payload bits, wire bits, datagrams and the bits they carry all
+    equal)."""
     steps = ref["length"].sum()
     same = [
         bool(e["success"]) == bool(ref["success"][b])
         and e["length"] == int(ref["length"][b])
         and e["payload_bits"] == round(float(ref["payload_bits"][b]))
         and e["sim_wire_bits"] == round(float(ref["sim_wire_bits"][b]))
+        and e.get("datagrams") == round(float(ref["datagrams"][b]))
+        and _carried(e) == round(float(ref["datagram_bits"][b]))
         for b, e in enumerate(episodes)
     ]
     return {
@@ -299,9 +304,17 @@ def compare(episodes: list[dict], ref: dict) -> dict:
         "episode_length": float(ref["length"].mean()),
         "bits_per_step": float(ref["payload_bits"].sum() / steps),
         "wire_bits_per_step": float(ref["sim_wire_bits"].sum() / steps),
+        "datagrams_per_step": float(ref["datagrams"].sum() / steps),
+        "datagram_bits_per_step": float(ref["datagram_bits"].sum() / steps),
         "identical_episodes": int(sum(same)),
         "different_episodes": [b for b, s in enumerate(same) if not s],
     }
+
+
+def _carried(episode: dict) -> int:
+    """The frame bits an episode's MSG datagrams carried (their bytes less their headers)."""
+    datagrams = episode.get("datagrams", 0)
+    return 8 * (episode.get("datagram_bytes", 0) - wire.HEADER_BYTES * datagrams)
 
 
 def deploy(args) -> dict:
@@ -397,7 +410,13 @@ def _deploy(args) -> dict:
                     strict=True,
                 )
             )
-            for name in (*CI_METRICS, "packet_bits_per_step", "datagram_bits_per_step")
+            for name in (
+                *CI_METRICS,
+                "frame_bits_per_step",
+                "datagram_bits_per_step",
+                "datagrams_per_step",
+                "missing_messages_per_step",
+            )
         }
     report = {
         "episodes_per_run": args.episodes,
@@ -424,7 +443,9 @@ def _print_row(row: dict) -> None:
         f"  run {row['index']}: success {row['success_rate']:.3f} "
         f"[{ci['success_rate'][0]:.3f}, {ci['success_rate'][1]:.3f}], "
         f"length {row['episode_length']:.1f}, bits/step {row['bits_per_step']:.1f} payload, "
-        f"{row['packet_bits_per_step']:.1f} packet, {row['network_bits_per_step']:.1f} network; "
+        f"{row['frame_bits_per_step']:.1f} frame, {row['network_bits_per_step']:.1f} network "
+        f"({row['network_datagrams_per_step']:.2f} datagrams), "
+        f"{row['missing_messages_per_step']:.3f} lost; "
         f"{row['restarts']} restarts"
     )
     if "simulation" in row:

@@ -1,5 +1,6 @@
 """A deployment's figures from the world's ``episodes.jsonl``: eval's metrics, bits per step
-counted three ways, and 95% CIs over episodes (``sparsecomm.stats``).
+counted from the payload to the network, datagrams and losses per step, and 95% CIs over
+episodes (``sparsecomm.stats``).
 
 ``python -m sparsecomm.deploy.report FOLDER`` prints them for a world's output folder (a
 deployment started by hand, on separate hosts)."""
@@ -27,24 +28,42 @@ CI_METRICS = (
 
 def summarize(episodes: list[dict]) -> tuple[dict, dict]:
     """Eval's metrics of a deployment's episodes and their 95% CIs over episodes:
-    ``(means, {metric: [low, high]})``. Bits per step are ratios over all steps (as
-    ``rollout.episode_metrics``), their CIs resample episodes."""
-    col = {
-        name: np.array([e[name] for e in episodes], np.float64)
-        for name in episodes[0]
-        if not isinstance(episodes[0][name], dict)
-    }
+    ``(means, {metric: [low, high]})``. Bits and counts per step are ratios over all steps (as
+    ``rollout.episode_metrics``; per step of the whole team), their CIs resample episodes:
+
+    * ``bits_per_step``: payload bits (the paper's count); ``wire_bits_per_step``: the
+      library's frame bits (``Sent.wire_bits``), as ``eval`` reports them;
+      ``frame_bits_per_step``: 8 x the bytes ``channel.encode_sender`` wrote, once per
+      speaking sender;
+    * ``datagram_bits_per_step``: the frames the MSG datagrams due carry (one copy of its
+      sender's frame per speaking link), as ``eval`` counts them; ``header_bits_per_step``:
+      their 13-byte headers; ``network_bits_per_step``: what the fault layer really sent
+      (lost datagrams not, duplicates and garbage yes), each with the ``wire.UDP_IP_BYTES`` of
+      IPv4 and UDP;
+    * ``datagrams_per_step`` (due) and ``network_datagrams_per_step`` (sent);
+      ``speaking_links_per_step``; ``missing_messages_per_step``: frames a heard map promised
+      that did not arrive by the deadline (losses; without a map, senders not heard);
+    * ``map_bits_per_step``: the heard maps the world sent (world traffic, not in the network
+      bits).
+
+    A record lacking a field (an older world's) counts 0 for it."""
+    col = {n: np.array([float(e.get(n, 0)) for e in episodes], np.float64) for n in _COUNTED}
     steps = col["length"]
     per_step = {
         "bits_per_step": col["payload_bits"],
         "wire_bits_per_step": col["sim_wire_bits"],
-        "packet_bits_per_step": col["packet_bits"],
-        "datagram_bits_per_step": 8 * col["datagram_bytes"],
+        "frame_bits_per_step": col["frame_bits"],
+        "datagram_bits_per_step": 8
+        * (col["datagram_bytes"] - wire.HEADER_BYTES * col["datagrams"]),
         "header_bits_per_step": 8 * wire.HEADER_BYTES * col["datagrams"],
         "network_bits_per_step": 8
         * (col["sent_bytes"] + wire.UDP_IP_BYTES * col["sent_datagrams"]),
+        "datagrams_per_step": col["datagrams"],
+        "network_datagrams_per_step": col["sent_datagrams"],
+        "speaking_links_per_step": col["spoke"],
         "missing_messages_per_step": col["missing"],
         "missing_actions_per_step": col["missing_actions"],
+        "map_bits_per_step": 8 * col["map_bytes"],
     }
     means = {
         "success_rate": float(col["success"].mean()),
@@ -57,6 +76,7 @@ def summarize(episodes: list[dict]) -> tuple[dict, dict]:
         stale_dropped=int(col["stale"].sum()),
         garbage_dropped=int(col["bad"].sum()),
         rejoins=int(col["rejoined"].sum()),
+        steps_without_map=int(col["no_map"].sum()),
     )
     cis = {}
     for name in CI_METRICS:
@@ -77,6 +97,30 @@ def summarize(episodes: list[dict]) -> tuple[dict, dict]:
             _, low, high = bootstrap_ci(x)
         cis[name] = [low, high]
     return means, cis
+
+
+_COUNTED = (
+    "success",
+    "length",
+    "group_reward",
+    "missing_actions",
+    "payload_bits",
+    "sim_wire_bits",
+    "frame_bits",
+    "spoke",
+    "datagrams",
+    "datagram_bytes",
+    "sent_bytes",
+    "sent_datagrams",
+    "missing",
+    "dup",
+    "stale",
+    "bad",
+    "no_map",
+    "rejoined",
+    "map_bytes",
+)
+"""The fields of an episode record that :func:`summarize` reads."""
 
 
 def read_episodes(folder: str | Path) -> list[dict]:

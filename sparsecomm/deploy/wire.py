@@ -13,13 +13,19 @@ Every UDP datagram of the runtime, between agents or with the world, is::
                    initial value 0xFFFF)
     13      ...    payload
 
-Between agents (kind ``MSG``) the payload is the link's packet exactly as
-``sparsecomm.channel.encode`` writes it (presence bitmap, codewords, CRC-32), and silence is an
-explicit datagram with an empty payload: a receiver can tell "the sender said nothing" from "the
-datagram was lost". :func:`parse` never raises: a datagram too short, with another magic or
-version, an unknown kind or a CRC-16 mismatch is ``None`` (garbage). Counting: the header is
-:data:`HEADER_BYTES` per datagram, and the IPv4 and UDP headers add :data:`UDP_IP_BYTES` more on
-the network (counted, not measured: loopback carries them too).
+Between agents (kind ``MSG``) the payload is the sender's **frame** of the step exactly as
+``sparsecomm.channel.encode_sender`` writes it (every non-silent link of the sender, error
+correction applied), one copy per recipient whose link speaks; a silent link sends **no**
+datagram. The world tells each agent whom to wait for: the observation's payload (kind ``OBS``)
+is the float32 observation followed by the **heard map** (:func:`pack_obs`), ``ceil((K-1)/8)``
+bytes whose bit ``s`` (byte ``s // 8``, bit ``s % 8``, least significant first) is set when the
+agent's ``s``-th sender (``channel.others``) spoke to it at the previous step, as that sender
+reported to the world. The episode and step of the header are what discards a stale frame: no
+sequence number is needed. :func:`parse`, :func:`parse_map` and :func:`parse_obs` never raise: a
+datagram too short, with another magic or version, an unknown kind or a CRC-16 mismatch is
+``None`` (garbage), and so is a map of another length or with a padding bit set. Counting: the
+header is :data:`HEADER_BYTES` per datagram, and the IPv4 and UDP headers add
+:data:`UDP_IP_BYTES` more on the network (counted, not measured: loopback carries them too).
 """
 
 from __future__ import annotations
@@ -31,14 +37,16 @@ import struct
 import sys
 from typing import NamedTuple
 
+import numpy as np
+
 MAGIC = b"SC"
 VERSION = 1
 MSG, OBS, ACT, HELLO, BYE, STEP = 1, 2, 3, 4, 5, 6
 KINDS = {MSG: "msg", OBS: "obs", ACT: "act", HELLO: "hello", BYE: "bye", STEP: "step"}
-"""``msg``: agent -> agent, a link's packet; ``obs``: world -> agent, its observation (float32,
-big-endian); ``act``: agent -> world, its action and what it sent and heard (JSON); ``hello``:
-agent -> world, "I am up" (at start and after a restart); ``bye``: world -> agent, shut down;
-``step``: world -> launcher, progress (empty)."""
+"""``msg``: agent -> agent, the sender's frame; ``obs``: world -> agent, its observation
+(float32, big-endian) and heard map; ``act``: agent -> world, its action and what it sent and
+heard (JSON); ``hello``: agent -> world, "I am up" (at start and after a restart); ``bye``:
+world -> agent, shut down; ``step``: world -> launcher, progress (empty)."""
 WORLD = 255
 """The id of the world process in the sender and recipient fields."""
 _HEAD = struct.Struct("!2sBBBIH")
@@ -92,6 +100,57 @@ def parse(data: bytes) -> Datagram | None:
     if binascii.crc_hqx(payload, binascii.crc_hqx(head, 0xFFFF)) != int.from_bytes(crc, "big"):
         return None
     return Datagram(vk & 15, sender, recipient, episode, step, payload)
+
+
+def map_bytes(num_links: int) -> int:
+    """Bytes of a heard map of ``num_links`` links (K - 1 per agent): ``ceil(num_links / 8)``."""
+    return -(-int(num_links) // 8)
+
+
+def pack_map(heard) -> bytes:
+    """The heard map of a sequence of booleans, one per sender slot: bit ``s`` of byte
+    ``s // 8`` (least significant first) set when slot ``s`` spoke; padding bits zero."""
+    bits = np.asarray(heard, bool).reshape(-1)
+    return np.packbits(bits, bitorder="little").tobytes()
+
+
+def parse_map(data: bytes, num_links: int) -> np.ndarray | None:
+    """The (num_links,) bool heard map in ``data``, or ``None`` when ``data`` is not one: another
+    length than :func:`map_bytes`, or a padding bit set (never raises)."""
+    if not isinstance(data, (bytes, bytearray, memoryview)) or num_links < 0:
+        return None
+    data = bytes(data)
+    if len(data) != map_bytes(num_links):
+        return None
+    bits = np.unpackbits(np.frombuffer(data, np.uint8), bitorder="little").astype(bool)
+    if bits[num_links:].any():
+        return None
+    return bits[:num_links]
+
+
+def pack_obs(obs, heard=None) -> bytes:
+    """An observation's payload: the float32 values (big-endian), then the heard map of
+    ``heard`` (one boolean per sender slot; ``None``: no map, the receivers wait for every
+    sender until the deadline)."""
+    body = np.asarray(obs, ">f4").reshape(-1).tobytes()
+    return body if heard is None else body + pack_map(heard)
+
+
+def parse_obs(payload: bytes, obs_dim: int, num_links: int):
+    """``(values (obs_dim,) float32, heard (num_links,) bool | None)`` of an observation's
+    payload; ``values`` is ``None`` when the payload holds no observation of ``obs_dim`` floats,
+    ``heard`` ``None`` when it holds no valid map (fall back to waiting for every sender).
+    Never raises."""
+    if not isinstance(payload, (bytes, bytearray, memoryview)):
+        return None, None
+    payload, n = bytes(payload), 4 * int(obs_dim)
+    if len(payload) < n:
+        return None, None
+    values = np.frombuffer(payload[:n], ">f4").astype(np.float32)
+    rest = payload[n:]
+    if len(rest) != map_bytes(num_links):  # no map, or one of another length: no map
+        return (values, None) if not rest else (None, None)
+    return values, parse_map(rest, num_links)
 
 
 def parse_address(text: str, name: str = "address") -> tuple[str, int]:

@@ -6,9 +6,18 @@ then plays the batch's episodes one after another with the draws of ``sparsecomm
 agent's action (``Deadlines.action`` at most; an agent that says hello meanwhile, restarted, is
 sent the observation again), takes action 0 (no force) for an agent still silent, and steps.
 Each agent's action datagram also says what the agent sent and heard that step; the world adds
-them up per link and per step (``links.csv``) and per episode (``episodes.jsonl``), and at the
-end tells every agent ``bye``. With ``--monitor`` it reports each step to the launcher, which
-may kill agents on schedule (``Deploy.kills_per_episode``).
+them up per link and per step (``links.csv``), per sender and step (``frames.csv``) and per
+episode (``episodes.jsonl``), and at the end tells every agent ``bye``. With ``--monitor`` it
+reports each step to the launcher, which may kill agents on schedule
+(``Deploy.kills_per_episode``).
+
+The heard map. Every observation of step ``t`` carries, after the floats, the map of which of
+the agent's senders spoke to it at step ``t - 1`` (:func:`heard_maps`, ``wire.pack_obs``), from
+the senders' own reports: the runtime's stand-in for a link-layer acknowledgement, so that a
+receiver waits only for frames that were sent and can call a missing one a loss. A sender whose
+report of ``t - 1`` the world lacks (dead, or its action late) is marked as speaking: its
+receivers wait the deadline and count a loss if nothing came. The map is world traffic, not
+counted in the network bits (``map_bytes`` in the episode records).
 """
 
 from __future__ import annotations
@@ -31,17 +40,65 @@ LINK_FIELDS = (
     "sender",
     "recipient",
     "payload_bits",
-    "sim_wire_bits",
-    "packet_bits",
+    "spoke",
     "datagram_bytes",
     "sent_bytes",
     "sent_datagrams",
 )
 """Columns of ``links.csv``: one row per link and step, as the sender reported it.
-``payload_bits`` and ``sim_wire_bits``: the library's counts of the symbols sent
-(``channel.transmit``); ``packet_bits``: 8 x the bytes ``channel.encode`` wrote;
-``datagram_bytes``: the datagram (header + packet); ``sent_bytes``/``sent_datagrams``: what the
-fault layer really put on the network (0 when lost; duplicates and garbage included)."""
+``payload_bits``: the library's count of the symbols sent (``channel.transmit``); ``spoke``: 1
+when the link spoke (a copy of the sender's frame was due to the recipient), 0 when silent;
+``datagram_bytes``: the datagram due on the link (header + frame; 0: none); ``sent_bytes`` /
+``sent_datagrams``: what the fault layer really put on the network for it (0 when lost or
+silent; duplicates and garbage included)."""
+FRAME_FIELDS = ("episode", "step", "sender", "sim_wire_bits", "frame_bits", "copies")
+"""Columns of ``frames.csv``: one row per sender and step. ``sim_wire_bits``: the library's
+count of the sender's frame (``Sent.wire_bits`` summed over its links); ``frame_bits``: 8 x the
+bytes ``channel.encode_sender`` wrote (0: a silent sender); ``copies``: the datagrams it was
+due to send, one per speaking link."""
+SUMS = (
+    "payload_bits",
+    "sim_wire_bits",
+    "frame_bits",
+    "spoke",
+    "datagrams",
+    "datagram_bytes",
+    "sent_bytes",
+    "sent_datagrams",
+    "missing",
+    "dup",
+    "stale",
+    "bad",
+    "no_map",
+    "rejoined",
+    "map_bytes",
+)
+"""The counts of an episode record (``episodes.jsonl``), summed over its steps: the links'
+(``LINK_FIELDS``) and frames' counts, ``datagrams`` (MSG datagrams due, before faults),
+``missing`` (frames a map promised that did not arrive: losses), the datagrams receivers
+dropped (``dup``, ``stale``, ``bad``: garbage), ``no_map`` (steps an agent waited without a
+map), ``rejoined`` (restarted agents) and ``map_bytes`` (the heard maps the world sent)."""
+
+
+def heard_maps(spoke: dict, num_agents: int) -> list[list[bool]]:
+    """Each agent's heard map: ``maps[j][s]`` is True when agent ``j``'s ``s``-th sender
+    (``channel.others``) spoke to it, read from ``spoke[i]``, sender ``i``'s report (one flag
+    per recipient slot); a sender without a report (or with a malformed one) counts as
+    speaking (its receivers wait, and call a missing frame a loss)."""
+    from sparsecomm.deploy.core import frame_slot
+
+    k = num_agents
+    maps = []
+    for j in range(k):
+        row = []
+        for i in (i for i in range(k) if i != j):
+            flags = spoke.get(i)
+            try:
+                row.append(bool(flags[frame_slot(i, j)]))
+            except (IndexError, TypeError, KeyError):
+                row.append(True)
+        maps.append(row)
+    return maps
 
 
 @dataclasses.dataclass
@@ -142,11 +199,16 @@ class World:
         if self._greet():
             return 2
         out = self.args.out
-        with open(out / "episodes.jsonl", "w") as eps, open(out / "links.csv", "w") as lf:
-            links = csv.writer(lf)
-            links.writerow(LINK_FIELDS)
+        with (
+            open(out / "episodes.jsonl", "w") as eps,
+            open(out / "links.csv", "w") as lf,
+            open(out / "frames.csv", "w") as ff,
+        ):
+            tables = csv.writer(lf), csv.writer(ff)
+            tables[0].writerow(LINK_FIELDS)
+            tables[1].writerow(FRAME_FIELDS)
             for b in range(self.args.episodes):
-                record = self._episode(b, links)
+                record = self._episode(b, tables)
                 eps.write(json.dumps(record) + "\n")
                 eps.flush()
         for _ in range(3):  # datagrams may be lost: say it thrice
@@ -154,7 +216,7 @@ class World:
                 self._send(wire.pack(wire.BYE, wire.WORLD, i, 0, 0), address)
         return 0
 
-    def _episode(self, b: int, links) -> dict:
+    def _episode(self, b: int, tables) -> dict:
         import jax.numpy as jnp
 
         obs, state = self.reset(self.reset_keys[b])
@@ -167,26 +229,20 @@ class World:
             "missing_actions": 0,
             "hellos": 0,
         }
-        sums = dict.fromkeys(
-            (
-                *LINK_FIELDS[4:],  # the links' counts, summed over the episode
-                "datagrams",
-                "missing",
-                "dup",
-                "stale",
-                "bad",
-                "rejoined",
-            ),
-            0,
-        )
+        sums = dict.fromkeys(SUMS, 0)
         per_link, counted = {}, set()
+        spoke = {i: [False] * (k - 1) for i in range(k)}  # who spoke at t - 1 (none at t = 0)
         for t in range(self.steps):
             if bool(state.done):
                 break
             obs_np = np.asarray(obs, ">f4")
+            maps = heard_maps(spoke, k)
             packets = [
-                wire.pack(wire.OBS, wire.WORLD, i, b, t, obs_np[i].tobytes()) for i in range(k)
+                wire.pack(wire.OBS, wire.WORLD, i, b, t, wire.pack_obs(obs_np[i], maps[i]))
+                for i in range(k)
             ]
+            sums["map_bytes"] += k * wire.map_bytes(k - 1)
+            spoke = {}
             for i in range(k):
                 self._send(packets[i], self.agents[i])
             if self.monitor is not None:
@@ -210,13 +266,17 @@ class World:
                     report = json.loads(dg.payload)
                 except ValueError:
                     continue
+                if not isinstance(report, dict):
+                    continue
                 late = dg.step < t
                 if not late and dg.sender not in answered:
                     answered.add(dg.sender)
-                    actions[dg.sender] = int(report.get("a", 0)) % self.env.num_actions
+                    actions[dg.sender] = _int(report.get("a", 0)) % self.env.num_actions
+                if not late:
+                    spoke[dg.sender] = report.get("spoke")
                 if (dg.sender, dg.step) not in counted:
                     counted.add((dg.sender, dg.step))
-                    self._count(report, b, dg.step, dg.sender, sums, per_link, links)
+                    self._count(report, b, dg.step, dg.sender, sums, per_link, tables)
             rec["missing_actions"] += k - len(answered)
             obs, state, rewards, _, info = self.step(
                 self.env_keys[t, b], state, jnp.asarray(actions)
@@ -228,35 +288,51 @@ class World:
         rec["links"] = per_link
         return rec
 
-    def _count(self, report, b, t, sender, sums, per_link, links) -> None:
+    def _count(self, report, b, t, sender, sums, per_link, tables) -> None:
         """Add one agent's report of step ``t`` (what it sent and heard) to the episode."""
         from sparsecomm import channel
 
         recipients = channel.others(self.k)[sender]
-        payload = report.get("payload", [])
+        copies = 0
         for r, j in enumerate(recipients):
             row = {
-                "payload_bits": _at(payload, r),
-                "sim_wire_bits": _at(report.get("sim_wire", []), r),
-                "packet_bits": _at(report.get("packet", []), r),
-                "datagram_bytes": _at(report.get("datagram", []), r),
-                "sent_bytes": _at(report.get("sent", []), r),
-                "sent_datagrams": _at(report.get("sent_n", []), r),
+                "payload_bits": _at(report.get("payload"), r),
+                "spoke": _at(report.get("spoke"), r),
+                "datagram_bytes": _at(report.get("datagram"), r),
+                "sent_bytes": _at(report.get("sent"), r),
+                "sent_datagrams": _at(report.get("sent_n"), r),
             }
-            links.writerow([b, t, sender, int(j), *row.values()])
+            tables[0].writerow([b, t, sender, int(j), *row.values()])
             link = per_link.setdefault(f"{sender}->{int(j)}", dict.fromkeys(row, 0))
             for name, value in row.items():
                 link[name] += value
                 sums[name] += value
-            sums["datagrams"] += r < len(report.get("datagram", []))
-        for name in ("missing", "dup", "stale", "bad", "rejoined"):
-            sums[name] += int(report.get(name, 0))
+            copies += row["datagram_bytes"] > 0
+        frame = {
+            "sim_wire_bits": _int(report.get("sim_wire")),
+            "frame_bits": _int(report.get("frame")),
+        }
+        tables[1].writerow([b, t, sender, *frame.values(), copies])
+        for name, value in frame.items():
+            sums[name] += value
+        sums["datagrams"] += copies
+        for name in ("missing", "dup", "stale", "bad", "no_map", "rejoined"):
+            sums[name] += _int(report.get(name))
 
 
 def _at(values, r: int) -> int:
+    """``int(values[r])``, 0 for anything else (a report is never trusted)."""
     try:
-        return int(values[r])
-    except (IndexError, TypeError, ValueError):
+        return _int(values[r])
+    except (IndexError, TypeError, KeyError):
+        return 0
+
+
+def _int(value) -> int:
+    """``int(value)`` of a number, 0 for anything else."""
+    try:
+        return int(value)
+    except (TypeError, ValueError, OverflowError):
         return 0
 
 
