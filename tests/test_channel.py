@@ -581,3 +581,19 @@ def test_wire_prices_and_gates_need_the_discrete_channel():
     assert wire.counted_metric == "wire_bits_per_step"
     loudest = np.full((2, 10), 15)  # both links of a sender, every element's longest codeword
     assert wire.max_bits_per_step(3) == 3 * 8 * len(channel.encode_frame(loudest, "paper"))
+
+
+def test_a_senders_wire_price_is_shared_by_the_links_that_exist():
+    cfg = channel.ChannelConfig(prices="wire", link_gate=True)
+    z = jax.random.uniform(jax.random.key(3), (5, 4, 3, cfg.signal_elements))
+    live = jax.random.uniform(jax.random.key(4), (5, 4, 3)) < 0.6
+    u = channel.dither(jax.random.key(5), z.shape)
+    sent = channel.transmit(cfg, z, u, live=live)
+    zl = jnp.where(live[..., None], z, 0.0)
+    table = cfg.code_obj.wire_lengths(cfg.num_elements)
+    frame = channel.expected_frame_bits(zl[..., :-1], cfg.levels, table, 32, zl[..., -1])
+    np.testing.assert_allclose(sent.penalty.sum(-1), frame, rtol=1e-5, atol=1e-6)
+    assert not np.asarray(sent.penalty)[~np.asarray(live)].any()
+    count = np.maximum(np.asarray(live).sum(-1, keepdims=True), 1)
+    share = np.where(np.asarray(live), np.asarray(frame)[..., None] / count, 0.0)
+    np.testing.assert_allclose(sent.penalty, share, rtol=1e-5, atol=1e-6)

@@ -237,14 +237,17 @@ class ChannelConfig:
         of its codewords (``channel.expected_bits``)."""
         return code_penalty(z, self.levels, self.code_obj)
 
-    def link_penalty(self, z: jax.Array, code: Code | FittedCode | None = None) -> jax.Array:
+    def link_penalty(
+        self, z: jax.Array, code: Code | FittedCode | None = None, live=None
+    ) -> jax.Array:
         """The differentiable cost of each link of signals ``z`` (..., L, C') -> (..., L), a
         sender's L links on the second-to-last axis, in the bits the channel prices
         (``prices``): the sum of :meth:`penalty` over the link's elements, with ``link_gate``
         (the gate ``g`` last in ``z``) times ``g``, the link's expected cost; or for ``wire``
         the sender's exact expected frame bits (``channel.expected_frame_bits``), shared
-        equally by its links. ``code``: price in this code instead of ``code_obj`` (the
-        plug-in layer's)."""
+        equally by its links that exist (``live`` (..., L) bool; default all; a link that
+        does not exist must have ``z = 0``). ``code``: price in this code instead of
+        ``code_obj`` (the plug-in layer's)."""
         code = self.code_obj if code is None else code
         gate = None
         if self.link_gate:
@@ -252,7 +255,10 @@ class ChannelConfig:
         if self.prices == "wire":
             lengths = code.wire_lengths(z.shape[-1])
             frame = expected_frame_bits(z, self.levels, lengths, self.check_bits, gate)
-            return jnp.broadcast_to(frame[..., None] / z.shape[-2], z.shape[:-1])
+            if live is None:
+                return jnp.broadcast_to(frame[..., None] / z.shape[-2], z.shape[:-1])
+            count = jnp.maximum(live.sum(-1, keepdims=True), 1)
+            return jnp.where(live, frame[..., None] / count, 0.0)
         cost = code_penalty(z, self.levels, code).sum(-1)
         return cost if gate is None else gate * cost
 

@@ -223,7 +223,7 @@ def transmit(
         else:
             if u is None:
                 raise ValueError("ChannelConfig.mode 'discrete' needs the links' dither u")
-            penalty = cfg.link_penalty(z, code)
+            penalty = cfg.link_penalty(z, code, live)
             if cfg.link_gate:  # the last element opens the link: 1 with probability g
                 z, g, u, u_gate = z[..., :-1], z[..., -1], u[..., :-1], u[..., -1]
                 opens = jnp.clip(jnp.floor(g + u_gate + 0.5), 0.0, 1.0)
@@ -244,7 +244,7 @@ def transmit(
         else:
             wire, frame = _framed_bits(cfg, m, code)
         if cfg.samples_symbols:
-            penalty = cfg.link_penalty(z, code)
+            penalty = cfg.link_penalty(z, code, live)
     if live is not None:
         z_hat = jnp.where(live[..., None], z_hat, 0.0)
         payload, wire, penalty = (jnp.where(live, x, 0.0) for x in (payload, wire, penalty))
