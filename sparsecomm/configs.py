@@ -284,6 +284,10 @@ succeeds in every one of 4000 episodes (11.6 steps on average); the default lear
 episodes per update reaches success >= 0.9 on 19 of 20 seeds in 600 updates (2.5M env steps per
 run, docs/budget.md)."""
 
+SILENT_CHANNEL = ChannelConfig(prices="wire", link_gate=True, on_silence="hold", check_bits=16)
+"""The ``silent`` preset's channel: the penalty and the budget price each sender's expected
+frame bits, each link has a gate, a silent link holds its last message (docs/wire.md)."""
+
 PRESETS: dict[str, dict[str, RLConfig | ILConfig]] = {
     "small": {
         "train": RLConfig(
@@ -301,10 +305,34 @@ PRESETS: dict[str, dict[str, RLConfig | ILConfig]] = {
             num_updates=800,
         ),
     },
+    "silent": {
+        "train": RLConfig(
+            env=SMALL_TASK,
+            agent=AgentConfig(message_gate="hard"),
+            channel=SILENT_CHANNEL,
+            budget=BudgetConfig(bits=24.0, relief_floor=0.5),
+            num_envs=64,
+            num_updates=800,
+        ),
+        "imitate": ILConfig(
+            env=SMALL_TASK,
+            agent=AgentConfig(message_gate="hard"),
+            channel=SILENT_CHANNEL,
+            budget=dataclasses.replace(ILConfig.budget, bits=24.0),
+            num_envs=64,
+            num_updates=800,
+        ),
+    },
 }
 """Named starting points for ``sparsecomm train --preset NAME`` and ``sparsecomm imitate
---preset NAME`` (``--config.*`` flags still override them). ``small``: :data:`SMALL_TASK`, the
-hard message gate and a budget of 16 payload bits per step, 64 episodes per update for 800
-updates. RL (the README's first command): lambda 0 sends ~52 bits; with the default controller
-10 untuned seeds reached 0.989 success at 17.5 bits. Imitation of the oracle: 3-4 minutes for
-three seeds on 2 CPU cores (docs/budget.md)."""
+--preset NAME`` (``--config.*`` flags still override them).
+
+``small``: :data:`SMALL_TASK`, the hard message gate and a budget of 16 payload bits per step,
+64 episodes per update for 800 updates. RL: lambda 0 sends ~52 bits; with the default
+controller 10 untuned seeds reached 0.989 success at 17.5 bits. Imitation of the oracle: 3-4
+minutes for three seeds on 2 CPU cores (docs/budget.md).
+
+``silent`` (the README's first command): the same task with links that fall silent
+(:data:`SILENT_CHANNEL`: a gate per link, silent links hold their last message, a 16-bit
+frame check) and a budget of 24 **wire** bits per step, with RL's relief bounded at half the
+last good price (``BudgetConfig.relief_floor`` 0.5). Chosen on tuning seeds (docs/wire.md)."""

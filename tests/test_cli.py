@@ -152,3 +152,13 @@ def test_budget_sweep_export_and_the_shipped_team(tmp_path, fast_compile, monkey
     shipped = json.loads((tmp_path / "runs" / "pretrained" / "eval.json").read_text())["runs"][0]
     assert shipped["budget"] == 16.0
     assert shipped["success_rate"] > 0.85 and 10 < shipped["bits_per_step"] < 20, shipped
+
+
+def test_the_silent_preset_prices_the_wire_and_holds_silent_links():
+    cmd = parse(["train", "--preset", "silent", "--config.num-updates", "5"])
+    channel = cmd.config.channel
+    assert (channel.prices, channel.link_gate, channel.on_silence) == ("wire", True, "hold")
+    assert channel.check_bits == 16 and channel.deployable
+    assert cmd.config.budget.bits == 24.0 and cmd.config.budget.relief_floor == 0.5
+    assert str(cmd.out) == "runs/silent" and cmd.config.num_updates == 5
+    assert parse(["imitate", "--preset", "silent"]).config.channel == channel
