@@ -370,6 +370,8 @@ def run_sweep(
             len=f"{last.get('episode_length', 0):.0f}",
             R=f"{last.get('group_reward', 0):.0f}",
             bits=f"{last.get('bits_per_step', 0):.1f}",
+            wire=f"{last.get('wire_bits_per_step', 0):.0f}",
+            speak=f"{last.get('speaking_fraction', 0):.0%}",
             sps=f"{sps:.0f}",
         )
         if chunks % checkpoint_every == 0 or done >= num_updates:
