@@ -269,7 +269,9 @@ def train(args: Train) -> dict:
             f"[{m['success_rate']['ci_low']:.3f}, {m['success_rate']['ci_high']:.3f}], "
             f"length {m['episode_length']['mean']:.1f}, "
             f"group reward {m['group_reward']['mean']:.0f}, "
-            f"bits/step {m['bits_per_step']['mean']:.1f}"
+            f"bits/step {m['bits_per_step']['mean']:.1f} payload, "
+            f"{m['wire_bits_per_step']['mean']:.1f} wire, "
+            f"{m['speaking_fraction']['mean']:.0%} of link-steps speak"
         )
     if cfg.num_updates > 0:
         metrics = ("group_reward", "episode_length", "success_rate", "bits_per_step")
