@@ -88,8 +88,23 @@ def read_rows(path: str | Path, task: str, learner: str) -> list[dict]:
     return rows(results, runfolder.read_config(path.parent), task, learner)
 
 
+def deployed(report: dict) -> dict:
+    """What a deployment (``sparsecomm deploy``'s ``deploy.json``) measured, over its runs:
+    ``{"runs", "episodes", "success", "network_bits", "identical_episodes"}``, the figures as
+    ``[mean, lo, hi]`` (95% CIs over runs)."""
+    runs = report["runs"]
+    out = {"runs": len(runs), "episodes": report["episodes_per_run"]}
+    for name, metric in (("success", "success_rate"), ("network_bits", "network_bits_per_step")):
+        values = [r[metric] for r in runs]
+        out[name] = list(bootstrap_ci(values)) if len(values) > 1 else [values[0]] * 3
+    same = [r["simulation"].get("identical_episodes") for r in runs]
+    out["identical_episodes"] = None if None in same else int(sum(same))
+    return out
+
+
 def plot(table: list[dict], out_png: str | Path) -> Path:
     import matplotlib
+    import matplotlib.ticker
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -109,6 +124,10 @@ def plot(table: list[dict], out_png: str | Path) -> Path:
         )  # fmt: skip
     axes[0].set(xlabel="wire bits per step", ylabel="success rate", xscale="log")
     axes[1].set(xlabel="wire bits per step", ylabel="link-steps that speak", xscale="log")
+    for ax in axes:  # plain numbers on the log axis, at round values
+        ax.set_xticks([16, 24, 32, 48, 64, 128, 256])
+        ax.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     axes[0].legend(fontsize=7)
     fig.tight_layout()
     out_png = Path(out_png)
@@ -128,7 +147,7 @@ def main(argv: list[str] | None = None) -> None:
         "--deployed",
         nargs="*",
         default=[],
-        help="BUDGET=REPORT: a deployment report (sparsecomm deploy's report.json) of a team of "
+        help="BUDGET=DEPLOY_JSON: a deployment (sparsecomm deploy's deploy.json) of the runs of "
         "the group with this budget (none: the lambda-0 group)",
     )
     parser.add_argument("--out", required=True, help="folder of summary.json (rows appended)")
@@ -141,10 +160,9 @@ def main(argv: list[str] | None = None) -> None:
     for spec in args.deployed:
         budget, _, report = spec.partition("=")
         want = None if budget == "none" else float(budget)
-        found = json.loads(Path(report).read_text())
         for r in new:
             if r["budget"] == want:
-                r["deployed"] = found.get("summary", found)
+                r["deployed"] = deployed(json.loads(Path(report).read_text()))
     keys = {(r["task"], r["learner"], r["counts"], r["budget"], r["lam"]) for r in new}
     table = [r for r in table if (r["task"], r["learner"], r["counts"], r["budget"], r["lam"])
              not in keys] + new  # fmt: skip

@@ -110,7 +110,7 @@ def test_tiny_rl_run_moves_its_bits_toward_the_budget(fast_compile):
 
 @pytest.mark.slow
 def test_a_wire_budget_on_gated_links_makes_them_fall_silent(fast_compile):
-    # The gate's price (g times the link's expected packet bits) has a gradient wherever the
+    # The gate's price (its sender's expected frame, smooth in g) has a gradient wherever the
     # link speaks, so a wire budget closes links instead of only shortening their codewords.
     gated = ChannelConfig(link_gate=True, on_silence="hold", prices="wire")
     tr = make_train(dataclasses.replace(TINY_RL, channel=gated))

@@ -121,3 +121,16 @@ def test_wire_frontier_rows_count_the_network_from_the_datagrams():
     assert wire_frontier.rows({"runs": old}, config, "small", "rl")[0]["network_bits"] is None
     with pytest.raises(ValueError, match="task"):
         wire_frontier.rows({"runs": runs}, config, "big", "rl")
+
+
+def test_wire_frontier_reads_a_deployments_figures_over_its_runs():
+    from sparsecomm import wire_frontier
+
+    runs = [
+        {"success_rate": s, "network_bits_per_step": b, "simulation": {"identical_episodes": 50}}
+        for s, b in ((0.9, 140.0), (0.95, 160.0), (0.92, 150.0))
+    ]
+    got = wire_frontier.deployed({"runs": runs, "episodes_per_run": 50})
+    assert got["runs"] == 3 and got["episodes"] == 50 and got["identical_episodes"] == 150
+    assert got["network_bits"][0] == pytest.approx(150.0)
+    assert got["network_bits"][1] < 150.0 < got["network_bits"][2]
