@@ -685,7 +685,8 @@ def test_ctrl_c_leaves_no_orphan(tmp_path):
         children = _children(launcher.pid)
         assert len(children) == 3  # the world and two agents
         launcher.send_signal(signal.SIGINT)
-        assert launcher.wait(30) != 0
+        # generous: in the full slow suite on 2 cores the launcher has taken over 30 s to stop
+        assert launcher.wait(120) != 0
     finally:
         if launcher.poll() is None:
             launcher.kill()
