@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from sparsecomm.deploy import wire
+from sparsecomm.deploy.world import SUMS
 from sparsecomm.stats import bootstrap_ci
 
 CI_METRICS = (
@@ -99,27 +100,7 @@ def summarize(episodes: list[dict]) -> tuple[dict, dict]:
     return means, cis
 
 
-_COUNTED = (
-    "success",
-    "length",
-    "group_reward",
-    "missing_actions",
-    "payload_bits",
-    "sim_wire_bits",
-    "frame_bits",
-    "spoke",
-    "datagrams",
-    "datagram_bytes",
-    "sent_bytes",
-    "sent_datagrams",
-    "missing",
-    "dup",
-    "stale",
-    "bad",
-    "no_map",
-    "rejoined",
-    "map_bytes",
-)
+_COUNTED = ("success", "length", "group_reward", "missing_actions", *SUMS)
 """The fields of an episode record that :func:`summarize` reads."""
 
 
