@@ -80,6 +80,11 @@ GRID = {
     "advnorm_gae95": dict(normalize_advantages=True, gae_lambda=0.95),
     "advnorm_ent03": dict(normalize_advantages=True, ent_coef=0.03),
     "advnorm_gae95_ent03": dict(normalize_advantages=True, gae_lambda=0.95, ent_coef=0.03),
+    # issue 32, shared actor parameters (the default since docs/rl.md), tuning seeds 1000-1001
+    "i32_b256": dict(seed=1000),
+    "i32_b64": dict(seed=1000, num_envs=64),
+    "i32_b32": dict(seed=1000, num_envs=32),
+    "i32_b64_gae95": dict(seed=1000, num_envs=64, gae_lambda=0.95),
     "nocomm_lr3e4_b256_ent": dict(
         lr=3e-4, num_envs=256, ent_coef=0.01, channel=ChannelConfig(mode="off")
     ),

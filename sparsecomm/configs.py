@@ -11,7 +11,10 @@ configurations here hold one.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
+
+import optax
 
 from sparsecomm.budget import BudgetConfig, check_budget
 from sparsecomm.channel import GATES, ChannelConfig
@@ -111,6 +114,13 @@ class LearnerConfig:
     """Number of gradient updates (>= 0). ours; ``ILConfig`` sets its own."""
     lr: float = 1e-3
     """Adam learning rate (> 0). ours: 1e-3 (docs/tuning.md; SPEC calibration: 3e-4)."""
+    lr_final: float | None = None
+    """If set (> 0): the learning rate falls linearly from ``lr`` to this over the first
+    ``lr_decay_steps`` gradient steps, then stays there. None: constant ``lr``. ours: None
+    (docs/paper-task.md measures a decay)."""
+    lr_decay_steps: int = 0
+    """Gradient steps (>= 1 when ``lr_final`` is set) over which the learning rate falls to
+    ``lr_final``; an update takes one step, or ``ppo_epochs * ppo_minibatches`` with PPO. ours."""
     max_grad_norm: float = 1.0
     """Global-norm gradient clipping (> 0); RL clips the actors and the critic separately
     (``rl.clip_each_part``), imitation the actors. SPEC calibration: 1.0 (one norm for both)."""
@@ -127,15 +137,32 @@ class LearnerConfig:
             "num_updates": (self.num_updates >= 0, ">= 0"),
             "lr": (self.lr > 0, "> 0"),
             "max_grad_norm": (self.max_grad_norm > 0, "> 0"),
+            "lr_final": (self.lr_final is None or self.lr_final > 0, "None or > 0"),
+            "lr_decay_steps": (
+                self.lr_decay_steps >= (0 if self.lr_final is None else 1),
+                ">= 1 when lr_final is set, else >= 0",
+            ),
         }
+
+    def learning_rate(self):
+        """Adam's learning rate: ``lr``, or its linear decay to ``lr_final`` (an optax
+        schedule of the gradient step)."""
+        if self.lr_final is None:
+            return self.lr
+        return optax.linear_schedule(self.lr, self.lr_final, self.lr_decay_steps)
 
     def __post_init__(self):
         _check_finite(self)
         for name, (ok, allowed) in self._checks().items():
             if not ok:
-                raise _bad(type(self).__name__, name, getattr(self, name), allowed)
+                value = functools.reduce(getattr, name.split("."), self)
+                raise _bad(type(self).__name__, name, value, allowed)
         check_fits(self.agent, self.env.num_agents)
         check_budget_fits(self)
+
+
+ALGOS = ("a2c", "ppo")
+"""The update rules of :class:`RLConfig` (``RLConfig.algo``)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -165,10 +192,45 @@ class RLConfig(LearnerConfig):
     reward_scale: float = 0.01
     """Rewards are multiplied by this (> 0) for learning; logs stay in the paper's units. SPEC
     calibration: 1/100."""
+    algo: str = "a2c"
+    """The update rule (``sparsecomm.rl``), one of :data:`ALGOS`. ``a2c``: the paper's
+    actor-critic (eq. 5), one gradient step per batch of ``num_envs`` episodes, through the
+    episode as it was played. ``ppo``: clipped policy optimisation; each batch is played once
+    without gradients, then replayed ``ppo_epochs`` times in ``ppo_minibatches`` minibatches of
+    episodes, one gradient step each, with the batch's actions and dither so that every
+    message is recomputed, differentiable, from the current parameters. paper: ``a2c``."""
+    ppo_epochs: int = 4
+    """With ``algo = "ppo"``: passes over each batch (>= 1). ours: 4, the usual PPO value
+    (docs/paper-task.md measures it)."""
+    ppo_minibatches: int = 4
+    """With ``algo = "ppo"``: gradient steps per pass, each on an equal share of the batch's
+    episodes (>= 1, dividing ``num_envs``). ours: 4, the usual PPO value (docs/paper-task.md)."""
+    ppo_clip: float = 0.2
+    """With ``algo = "ppo"``: the probability ratio of an action under the new and the
+    collecting parameters is clipped to [1 - ppo_clip, 1 + ppo_clip] in the objective (> 0).
+    ours: 0.2, the value of the PPO paper (Schulman et al., 2017)."""
 
     def _checks(self) -> dict[str, tuple[bool, str]]:
+        ppo = self.algo == "ppo"
         return {
             **super()._checks(),
+            "algo": (self.algo in ALGOS, f"one of {ALGOS}"),
+            "ppo_epochs": (self.ppo_epochs >= 1, ">= 1"),
+            "ppo_minibatches": (
+                self.ppo_minibatches >= 1 and self.num_envs % self.ppo_minibatches == 0,
+                f">= 1 and divide num_envs ({self.num_envs})",
+            ),
+            "ppo_clip": (self.ppo_clip > 0, "> 0"),
+            "channel.mode": (
+                not ppo or not self.channel.samples_symbols,
+                "a mode whose symbols are not sampled actions with algo 'ppo' (a replay "
+                "recomputes every message from the dither)",
+            ),
+            "channel.noise": (
+                not ppo or self.ppo_minibatches == 1 or self.channel.noise.clean,
+                "clean with algo 'ppo' and ppo_minibatches > 1 (a minibatch replays its "
+                "episodes' randomness, and a noisy channel's is drawn for the whole batch)",
+            ),
             "gamma": (0 <= self.gamma <= 1, "in [0, 1]"),
             "gae_lambda": (0 <= self.gae_lambda <= 1, "in [0, 1]"),
             "ent_coef": (self.ent_coef >= 0, ">= 0"),

@@ -80,7 +80,9 @@ def make_imitate(config: ILConfig, expert: Expert | None = None) -> Learner:
                 "make_imitate(config, sparsecomm.runfolder.load_expert(config))"
             )
         expert = oracle_expert(env)
-    tx = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.lr))
+    tx = optax.chain(
+        optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate())
+    )
 
     def beta_at(update):
         if config.beta_decay_updates == 0:

@@ -58,6 +58,24 @@ class LossAux(NamedTuple):
 
 
 @dataclasses.dataclass(frozen=True)
+class Replay:
+    """How a learner that plays each batch once and then takes several gradient steps on it
+    (``RLConfig.algo = "ppo"``) gets its batches. Its loss is then
+    ``loss_fn(params, batch, episodes, price, update) -> (loss, LossAux)`` on the (b,) episodes
+    ``episodes`` of the batch."""
+
+    collect: Callable
+    """``collect(params, key, update) -> (batch, LossAux)``: the batch of ``num_envs`` episodes
+    of ``key`` played without gradients, and the metrics, GRU states and valid steps of its
+    episodes (those the controller and the decoupled penalty step read)."""
+    epochs: int
+    """Passes over each batch (>= 1)."""
+    minibatches: int
+    """Gradient steps per pass, each on ``num_envs / minibatches`` episodes drawn without
+    replacement (>= 1)."""
+
+
+@dataclasses.dataclass(frozen=True)
 class Learner:
     """The pure functions of one configuration (see the module docstring)."""
 
@@ -108,9 +126,11 @@ def make_learner(
     team: Team,
     success_of: Callable | None = None,
     expert: Expert | None = None,
+    replay: Replay | None = None,
 ) -> Learner:
     """Wrap a loss into a learner. ``success_of(metrics, update)`` is the success rate the budget
-    controller sees (default: the batch's ``success_rate``)."""
+    controller sees (default: the batch's ``success_rate``). ``replay``: the loss is taken on
+    minibatches of a batch played once (:class:`Replay`); by default it plays its own batch."""
     if success_of is None:
 
         def success_of(metrics, update):
@@ -123,14 +143,49 @@ def make_learner(
         controller = bit_budget.init(config.budget, budget, lam)
         return LearnerState(params, tx.init(params), k_run, jnp.zeros((), jnp.int32), controller)
 
+    def gradient_step(params, opt_state, *loss_args):
+        """One step of the optimiser on the loss's gradient: the new parameters and optimiser
+        state, the loss's aux and each part's gradient norm."""
+        grads, aux = jax.grad(loss_fn, has_aux=True)(params, *loss_args)
+        updates, opt_state = tx.update(grads, opt_state, params)
+        norms = {f"{part}_grad_norm": optax.tree.norm(g) for part, g in grads.items()}
+        return optax.apply_updates(params, updates), opt_state, aux, norms
+
+    def replayed_steps(state: LearnerState, key, price):
+        """Play the batch once, then ``epochs`` passes of ``minibatches`` steps over it."""
+        k_roll, k_order = jax.random.split(key)
+        batch, aux = replay.collect(state.params, k_roll, state.update)
+        n = config.num_envs
+        orders = jax.vmap(lambda k: jax.random.permutation(k, n))(
+            jax.random.split(k_order, replay.epochs)
+        )
+        minibatches = orders.reshape(replay.epochs * replay.minibatches, n // replay.minibatches)
+
+        def step(carry, episodes):
+            params, opt_state, aux_mb, norms = gradient_step(
+                *carry, batch, episodes, price, state.update
+            )
+            return (params, opt_state), (aux_mb.metrics, norms)
+
+        (params, opt_state), (steps, norms) = jax.lax.scan(
+            step, (state.params, state.opt_state), minibatches
+        )
+        # the batch's episodes, and each loss term and gradient norm averaged over the steps
+        metrics = {**jax.tree.map(jnp.mean, steps), **aux.metrics, **jax.tree.map(jnp.mean, norms)}
+        return params, opt_state, aux, metrics, jnp.isfinite(steps["loss"]).all()
+
     def update(state: LearnerState):
         key, k_roll = jax.random.split(state.key)
         price = bit_budget.weight(state.budget)
         in_loss = 0.0 if config.budget.decoupled else price  # else a step of its own, below
-        grads, aux = jax.grad(loss_fn, has_aux=True)(state.params, k_roll, in_loss, state.update)
-        metrics = aux.metrics
-        updates, opt_state = tx.update(grads, state.opt_state, state.params)
-        params = optax.apply_updates(state.params, updates)
+        if replay is None:
+            params, opt_state, aux, norms = gradient_step(
+                state.params, state.opt_state, k_roll, in_loss, state.update
+            )
+            metrics = {**aux.metrics, **norms}
+            finite = jnp.isfinite(metrics["loss"])
+        else:
+            params, opt_state, aux, metrics, finite = replayed_steps(state, k_roll, in_loss)
         params = bit_budget.decoupled_update(
             config.budget,
             params,
@@ -140,12 +195,10 @@ def make_learner(
             price,
             config.channel.link_penalty,
         )
-        for part, g in grads.items():
-            metrics[f"{part}_grad_norm"] = optax.tree.norm(g)
         # Divergence is flagged here, inside the compiled update (no host sync per step); the
-        # sweep stops at the end of the chunk and keeps its last good checkpoint.
-        finite = jnp.isfinite(metrics["loss"])
-        for x in jax.tree.leaves((grads, params)):
+        # sweep stops at the end of the chunk and keeps its last good checkpoint. A gradient
+        # that stopped being finite shows in its norm.
+        for x in jax.tree.leaves(params) + [v for n, v in metrics.items() if "grad_norm" in n]:
             finite &= jnp.isfinite(x).all()
         metrics["nonfinite"] = 1.0 - finite.astype(jnp.float32)
         controller = bit_budget.update(

@@ -27,12 +27,15 @@ resumable pieces (checkpoints, progress, logs).
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import optax
+from flax import struct
 
 from sparsecomm.configs import RLConfig
-from sparsecomm.learner import Learner, LossAux, make_learner, make_team, masked_mean
+from sparsecomm.learner import Learner, LossAux, Replay, make_learner, make_team, masked_mean
 from sparsecomm.rollout import Trajectory, episode_metrics, rollout
 
 
@@ -95,7 +98,9 @@ def clip_each_part(max_norm: float) -> optax.GradientTransformation:
 def make_train(config: RLConfig, env=None) -> Learner:
     """The learner of ``config``; ``env``: another task than ``config.env`` (``make_team``)."""
     env, team = make_team(config, env)
-    tx = optax.chain(clip_each_part(config.max_grad_norm), optax.adam(config.lr))
+    tx = optax.chain(clip_each_part(config.max_grad_norm), optax.adam(config.learning_rate()))
+    if config.algo == "ppo":
+        return _make_ppo(config, env, team, tx)
 
     def loss_fn(params, key, lam, update):
         traj: Trajectory = rollout(
@@ -123,35 +128,143 @@ def make_train(config: RLConfig, env=None) -> Learner:
             config.gamma,
             config.gae_lambda,
         )
-        # lam prices a bit in the paper's reward units (SPEC 3: J = E[sum_t gamma^t r_t]
-        # - lam E[sum_t penalty_t]), so the penalty is scaled exactly as the policy-gradient term:
-        # by reward_scale, and by 1 / std of the advantages when they are standardised.
-        penalty_weight = lam * config.reward_scale
-        penalty_weight *= penalty_schedule(update, config.penalty_delay, config.penalty_ramp)
+        adv_std = None
         if config.normalize_advantages:
             adv, adv_std = normalize_per_agent(adv, traj.valid)
-            penalty_weight = penalty_weight / jax.lax.stop_gradient(adv_std.mean())
         logp = jnp.take_along_axis(traj.log_probs, traj.actions[..., None], -1)[..., 0]
         if reinforced:  # the symbols sent are actions too, with the same advantage
             logp = logp + traj.msg_log_probs
-        entropy = -(jnp.exp(traj.log_probs) * traj.log_probs).sum(-1)
         pg = -(logp * jax.lax.stop_gradient(adv)).sum(-1)
-        value_loss = jnp.square(values - jax.lax.stop_gradient(targets)).sum(-1)
-        mean = masked_mean(traj.valid)
-        loss = (
-            mean(pg)
-            + config.vf_coef * mean(value_loss)
-            - config.ent_coef * mean(entropy.sum(-1))
-            + penalty_weight * mean(traj.penalty)
-        )
-        metrics = episode_metrics(traj)
-        metrics.update(
-            loss=loss,
-            policy_loss=mean(pg),
-            value_loss=mean(value_loss),
-            entropy=mean(entropy.mean(-1)),
-            penalty_weight=penalty_weight,
-        )
-        return loss, LossAux(metrics, traj.hidden, traj.valid)
+        return _objective(config, traj, pg, values, targets, lam, update, adv_std)
 
     return make_learner(config, loss_fn, tx, env=env, team=team)
+
+
+def _objective(config: RLConfig, traj: Trajectory, pg, values, targets, lam, update, adv_std):
+    """The loss of eq. 5 around a policy-gradient term: ``pg`` (T, B) summed over agents, the
+    critic's squared error on ``targets`` (T, B, K), the entropy bonus and the bit penalty.
+
+    ``lam`` prices a bit in the paper's reward units (SPEC 3: J = E[sum_t gamma^t r_t] - lam
+    E[sum_t penalty_t]), so the penalty is scaled exactly as the policy-gradient term: by
+    ``reward_scale``, and by 1 / std of the advantages (``adv_std`` (K,), None when they are
+    not standardised)."""
+    penalty_weight = lam * config.reward_scale
+    penalty_weight *= penalty_schedule(update, config.penalty_delay, config.penalty_ramp)
+    if adv_std is not None:
+        penalty_weight = penalty_weight / jax.lax.stop_gradient(adv_std.mean())
+    entropy = -(jnp.exp(traj.log_probs) * traj.log_probs).sum(-1)
+    value_loss = jnp.square(values - jax.lax.stop_gradient(targets)).sum(-1)
+    mean = masked_mean(traj.valid)
+    loss = (
+        mean(pg)
+        + config.vf_coef * mean(value_loss)
+        - config.ent_coef * mean(entropy.sum(-1))
+        + penalty_weight * mean(traj.penalty)
+    )
+    metrics = episode_metrics(traj)
+    metrics.update(
+        loss=loss,
+        policy_loss=mean(pg),
+        value_loss=mean(value_loss),
+        entropy=mean(entropy.mean(-1)),
+        penalty_weight=penalty_weight,
+    )
+    return loss, LossAux(metrics, traj.hidden, traj.valid)
+
+
+class Batch(struct.PyTreeNode):
+    """A batch played once for ``algo = "ppo"``: what its replays need, leading axes (T, B)."""
+
+    key: jax.Array  # the batch's key: a replay draws the same episodes, dither and all
+    actions: jax.Array  # (T, B, K) int32 actions executed
+    log_probs: jax.Array  # (T, B, K) their log-probabilities under the collecting parameters
+    advantages: jax.Array  # (T, B, K) advantages (standardised per agent when configured)
+    targets: jax.Array  # (T, B, K) the critic's targets
+    states: jax.Array  # (T, B, state_dim) global states (the critic's input)
+    adv_std: jax.Array | None  # (K,) the advantages' standard deviations, or None
+
+
+def clipped_policy_loss(log_probs, old_log_probs, advantages, clip: float):
+    """PPO's clipped surrogate, ``-min(r A, clip(r, 1 - clip, 1 + clip) A)`` with the ratio
+    ``r = exp(log_probs - old_log_probs)``; all (T, B, K). At ``r = 1`` its gradient is the
+    plain policy gradient's, ``-A grad log pi``. Returns the loss (T, B, K) and the ratio."""
+    ratio = jnp.exp(log_probs - old_log_probs)
+    clipped = jnp.clip(ratio, 1.0 - clip, 1.0 + clip)
+    return -jnp.minimum(ratio * advantages, clipped * advantages), ratio
+
+
+def _make_ppo(config: RLConfig, env, team, tx) -> Learner:
+    """``algo = "ppo"``: each batch is played once without gradients (``collect``), then each
+    minibatch of its episodes is replayed with the current parameters, the batch's actions and
+    its dither: the messages, the log-probabilities and the bit penalty are recomputed and
+    differentiable through the episode, as in ``a2c``, and the policy term is PPO's clipped
+    surrogate on the advantages of the collecting parameters."""
+
+    def critic(params, states):
+        return jax.lax.map(lambda s: team.value(params["critic"], s), states)
+
+    def collect(params, key, update):
+        params = jax.lax.stop_gradient(params)
+        traj = rollout(
+            team,
+            env,
+            config.channel,
+            params["actor"],
+            key,
+            config.num_envs,
+            keep_hidden=config.budget.decoupled,
+        )
+        rewards = traj.rewards * config.reward_scale * traj.valid[..., None]
+        values = critic(params, traj.states)
+        adv, targets = discounted_targets(
+            rewards, values, traj.dones, traj.valid, config.gamma, config.gae_lambda
+        )
+        adv_std = None
+        if config.normalize_advantages:
+            adv, adv_std = normalize_per_agent(adv, traj.valid)
+        logp = jnp.take_along_axis(traj.log_probs, traj.actions[..., None], -1)[..., 0]
+        batch = Batch(key, traj.actions, logp, adv, targets, traj.states, adv_std)
+        return batch, LossAux(episode_metrics(traj), traj.hidden, traj.valid)
+
+    def loss_fn(params, batch: Batch, episodes, lam, update):
+        def pick(x):
+            return x[:, episodes]
+
+        traj: Trajectory = rollout(
+            team,
+            env,
+            config.channel,
+            params["actor"],
+            batch.key,
+            config.num_envs,
+            remat=config.remat,
+            episodes=episodes,
+            actions=pick(batch.actions),
+        )
+        logp = jnp.take_along_axis(traj.log_probs, traj.actions[..., None], -1)[..., 0]
+        pg, ratio = clipped_policy_loss(
+            logp, pick(batch.log_probs), pick(batch.advantages), config.ppo_clip
+        )
+        values = critic(params, pick(batch.states))
+        loss, aux = _objective(
+            config, traj, pg.sum(-1), values, pick(batch.targets), lam, update, batch.adv_std
+        )
+        mean = masked_mean(traj.valid)
+        ratio = jax.lax.stop_gradient(ratio)
+        aux.metrics.update(
+            clip_fraction=mean((jnp.abs(ratio - 1.0) > config.ppo_clip).mean(-1)),
+            approx_kl=mean((ratio - 1.0 - jnp.log(ratio)).mean(-1)),
+        )
+        return loss, aux
+
+    replay = Replay(collect, config.ppo_epochs, config.ppo_minibatches)
+    learner = make_learner(config, loss_fn, tx, env=env, team=team, replay=replay)
+
+    def loss_of_key(params, key, lam, update):
+        """The loss of the first minibatch of the batch of ``key`` (the shape every replayed
+        step has; ``memory.estimate`` sizes the update by it)."""
+        batch, _ = collect(params, key, update)
+        episodes = jnp.arange(config.num_envs // config.ppo_minibatches)
+        return loss_fn(params, batch, episodes, lam, update)
+
+    return dataclasses.replace(learner, loss=loss_of_key)

@@ -106,6 +106,8 @@ def rollout(
     keep_states: bool = False,
     keep_hidden: bool = False,
     keep_symbols: bool = False,
+    episodes: jax.Array | None = None,
+    actions: jax.Array | None = None,
 ) -> Trajectory:
     """Play ``num_envs`` whole episodes.
 
@@ -124,23 +126,36 @@ def rollout(
         step outside the optimiser, ``sparsecomm.budget.penalty_step``).
       keep_symbols: also return the symbols of every link (for measuring and fitting codes,
         ``sparsecomm.codestats``).
+      episodes: (b,) int32 indices: play only these episodes of the ``num_envs`` that ``key``
+        draws, with the very randomness they have in the whole batch (a minibatch of a
+        replayed batch, ``RLConfig.algo = "ppo"``). Needs a clean channel and no expert.
+      actions: (T, b, K) int32 actions to execute instead of the learners' (a replay: the
+        episodes of a batch played again with new parameters, their messages recomputed from
+        the same dither; ``log_probs`` are the learners' own).
     """
     k = env.num_agents
     num_steps = env.config.max_steps
     reset_keys, env_keys = world_draws(key, num_envs, num_steps)
     chan_keys, gumbel = agent_draws(key, num_envs, num_steps, k, team.num_actions)
+    if episodes is not None:  # a minibatch: its episodes' share of the batch's randomness
+        if expert is not None or not channel_cfg.noise.clean:
+            raise ValueError("rollout(episodes=...) needs a clean channel and no expert")
+        reset_keys, chan_keys = reset_keys[episodes], chan_keys[episodes]
+        env_keys, gumbel = env_keys[:, episodes], gumbel[:, episodes]
+        num_envs = episodes.shape[0]
     obs, state = jax.vmap(env.reset)(reset_keys)
     c = channel_cfg.num_elements
     # Links that follow positions, or an inbox that reads which links arrived (``scaling``):
     # the receivers are told what they heard. Otherwise (the paper's team) every link exists.
     masked = team.routed or team.cfg.aggregate != "concat"
+    replay = actions is not None
     # All the step's randomness is drawn before the loop, in a few large vectorised draws.
     noise = {
         "t": jnp.arange(num_steps),
         "env": env_keys,
-        "gumbel": gumbel,
         "dither": channel.link_dither(channel_cfg, chan_keys, num_steps, k),
     }
+    noise.update({"replay": actions} if replay else {"gumbel": gumbel})
     if expert is not None:
         keys = _batch_keys(key)
         noise["expert"] = jax.random.split(keys["expert"], num_steps)
@@ -152,7 +167,7 @@ def rollout(
         lossy = channel.lossy.LossyLinks(channel_cfg, key, num_envs, k, num_steps)
         noise["loss"] = lossy.step_keys
     # Episodes are independent: split them over the mesh's episodes axis, if there is one.
-    batched = ("env", "gumbel", "dither", "mix")
+    batched = ("env", "gumbel", "replay", "dither", "mix")
     noise.update(split_episodes({n: v for n, v in noise.items() if n in batched}, axis=1))
     init = Carry(
         env_state=state,
@@ -172,7 +187,9 @@ def rollout(
         t, state, obs = noise["t"], carry.env_state, carry.obs
         gru, logits, z = team.act(actor_params, carry.gru, obs, carry.msgs, carry.heard)
         log_probs = jax.nn.log_softmax(logits)
-        if greedy:
+        if replay:  # the batch's own actions, played again
+            actions = noise["replay"]
+        elif greedy:
             actions = jnp.argmax(logits, -1)
         else:  # Gumbel-max: a sample of the categorical distribution of ``logits``
             actions = jnp.argmax(jax.lax.stop_gradient(log_probs) + noise["gumbel"], -1)

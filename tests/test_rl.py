@@ -189,3 +189,32 @@ def test_orthogonal_init_is_orthogonal_and_random(shape):
     gram = q.T @ q if shape[0] >= shape[1] else q @ q.T
     np.testing.assert_allclose(gram, np.eye(gram.shape[0]), atol=1e-5)
     assert not np.allclose(q, np.asarray(orthogonal()(jax.random.key(1), shape)))
+
+
+def test_learning_rate_decays_linearly_then_stays():
+    cfg = dataclasses.replace(TINY, lr=1e-3, lr_final=1e-4, lr_decay_steps=10)
+    lr = cfg.learning_rate()
+    np.testing.assert_allclose(
+        [lr(0), lr(5), lr(10), lr(50)], [1e-3, 5.5e-4, 1e-4, 1e-4], rtol=1e-6
+    )
+    assert TINY.learning_rate() == TINY.lr  # the default: constant, no schedule state
+    with pytest.raises(ValueError, match="RLConfig.lr_decay_steps must be >= 1 when lr_final"):
+        dataclasses.replace(TINY, lr_final=1e-4)
+    with pytest.raises(ValueError, match="RLConfig.lr_final must be None or > 0, got 0.0"):
+        dataclasses.replace(TINY, lr_final=0.0, lr_decay_steps=3)
+
+    # Two updates each: the first at 1e-3 on both sides, the second at 1e-5 with the decay.
+    def deltas(config):
+        tr = make_train(config)
+        first, _ = tr.update(tr.init(jax.random.key(0), 0.0))
+        second, _ = tr.update(first)
+        leaves = zip(jax.tree.leaves(second.params), jax.tree.leaves(first.params), strict=True)
+        return first.params, sum(float(jnp.abs(a - b).sum()) for a, b in leaves)
+
+    (p_decay, d_decay), (p_const, d_const) = (
+        deltas(dataclasses.replace(TINY, lr_final=1e-5, lr_decay_steps=1)),
+        deltas(TINY),
+    )
+    for x, y in zip(jax.tree.leaves(p_decay), jax.tree.leaves(p_const), strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-7)
+    assert 0.003 < d_decay / d_const < 0.03, (d_decay, d_const)

@@ -1,0 +1,176 @@
+"""Learners side by side on one machine: success against env steps and against wall-clock.
+
+Each learner (a name and ``RLConfig`` overrides) trains its seeds as one vmapped program, in
+chunks of updates, one learner after the other in the same process, until the mean training
+success over its seeds, as a moving average over ``--window`` updates, first exceeds
+``--target`` (then ``--extra`` more updates), or ``--max-env-steps`` / ``--max-wall`` runs out.
+Seed s of every learner is ``key(seed + s)``, the key ``sparsecomm train --seeds N`` gives it.
+Then each seed's team is evaluated on ``--eval-episodes`` fresh episodes. Env steps count whole
+episodes (``num_envs * max_steps`` per update), as docs/rl.md does; wall-clock includes
+compiling, which is also reported alone.
+
+    python benchmarks/learner_race.py --seeds 5 --out race.json \\
+        --learner today: \\
+        --learner ppo:algo=ppo,num_envs=64,ppo_epochs=2,ppo_minibatches=2
+
+The JSON written to ``--out`` holds, per learner, its overrides, the per-update mean success
+and length, the wall-clock at the end of each chunk, the env steps and wall-clock at which the
+target was first passed (null if never) and each seed's evaluation. docs/paper-task.md has
+the figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from sparsecomm.configs import RLConfig
+from sparsecomm.rl import make_train
+
+
+def parse_learner(text: str) -> tuple[str, dict]:
+    """``NAME:FIELD=VALUE,...`` -> (name, overrides), each value parsed by its field's type."""
+    name, _, rest = text.partition(":")
+    types = {f.name: f.type for f in dataclasses.fields(RLConfig)}
+    overrides = {}
+    for item in filter(None, rest.split(",")):
+        field, _, value = item.partition("=")
+        kind = str(types[field])  # e.g. "int", "float | None" (the annotation's text)
+        if value == "None" and "None" in kind:
+            overrides[field] = None
+        elif kind.startswith("int"):
+            overrides[field] = int(value)
+        elif kind.startswith("float"):
+            overrides[field] = float(value)
+        elif kind.startswith("bool"):
+            overrides[field] = value.lower() in ("1", "true", "yes")
+        else:
+            overrides[field] = value
+    return name, overrides
+
+
+def first_pass(curve: np.ndarray, target: float, window: int) -> int | None:
+    """0-based update at which the moving average of ``curve`` over ``window`` updates first
+    exceeds ``target``, or None."""
+    if len(curve) < window:
+        return None
+    avg = np.convolve(curve, np.ones(window) / window, mode="valid")
+    hits = np.nonzero(avg > target)[0]
+    return None if len(hits) == 0 else int(hits[0] + window - 1)
+
+
+def race(name: str, overrides: dict, args) -> dict:
+    cfg = RLConfig(**{"seed": args.seed, **overrides})
+    tr = make_train(cfg)
+    steps_per_update = cfg.num_envs * cfg.env.max_steps
+    chunk = max(1, round(args.chunk_env_steps / steps_per_update))
+    keys = jnp.stack([jax.random.key(cfg.seed + s) for s in range(args.seeds)])
+    t0 = time.time()
+    state = jax.jit(jax.vmap(tr.init, (0, None)))(keys, 0.0)
+    step = jax.jit(jax.vmap(lambda s: tr.update_chunk(s, chunk)))
+    compiled = step.lower(state).compile()
+    compile_s = time.time() - t0
+    success, length, walls = [], [], []
+    passed, stop_at = None, None
+    while True:
+        state, m = compiled(state)
+        success += np.asarray(m["success_rate"]).mean(0).tolist()
+        length += np.asarray(m["episode_length"]).mean(0).tolist()
+        walls.append(time.time() - t0)
+        done = len(success)
+        if passed is None:
+            passed = first_pass(np.asarray(success), args.target, args.window)
+            if passed is not None:
+                stop_at = done + args.extra
+        print(
+            f"[{name}] update {done:5d} env steps {done * steps_per_update / 1e6:6.1f}M "
+            f"wall {walls[-1]:6.0f}s success {np.mean(success[-chunk:]):.3f} "
+            f"length {np.mean(length[-chunk:]):6.1f}"
+            + ("" if passed is None else f"  passed at update {passed + 1}"),
+            flush=True,
+        )
+        if stop_at is not None and done >= stop_at:
+            break
+        if done * steps_per_update >= args.max_env_steps or walls[-1] >= args.max_wall:
+            break
+    train_s = walls[-1]
+    ev = jax.jit(jax.vmap(lambda p, k: tr.evaluate(p, k, args.eval_episodes)))
+    eval_keys = jnp.stack([jax.random.key(10_000 + cfg.seed + s) for s in range(args.seeds)])
+    evaluation = jax.tree.map(
+        lambda x: np.asarray(x).tolist(), ev(state.params["actor"], eval_keys)
+    )
+
+    def wall_at(update):  # the wall-clock at the end of the chunk holding that update
+        return walls[update // chunk]
+
+    return dict(
+        name=name,
+        overrides=overrides,
+        seeds=args.seeds,
+        seed=cfg.seed,
+        updates=len(success),
+        chunk=chunk,
+        env_steps_per_update=steps_per_update,
+        compile_s=compile_s,
+        train_s=train_s,
+        success=success,
+        episode_length=length,
+        chunk_wall_s=walls,
+        passed_update=None if passed is None else passed + 1,
+        env_steps_to_target=None if passed is None else (passed + 1) * steps_per_update,
+        wall_s_to_target=None if passed is None else wall_at(passed),
+        evaluation=evaluation,
+    )
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--learner", action="append", required=True, help="NAME:FIELD=VALUE,...")
+    p.add_argument("--seeds", type=int, default=5)
+    p.add_argument("--seed", type=int, default=0, help="base seed (seed s: key(seed + s))")
+    p.add_argument("--target", type=float, default=0.95)
+    p.add_argument("--window", type=int, default=10, help="updates in the moving average")
+    p.add_argument("--extra", type=int, default=0, help="updates to run past the target")
+    p.add_argument("--chunk-env-steps", type=float, default=1e6, help="env steps per chunk")
+    p.add_argument("--max-env-steps", type=float, default=60e6, help="per seed")
+    p.add_argument("--max-wall", type=float, default=3600.0, help="seconds per learner")
+    p.add_argument("--eval-episodes", type=int, default=500)
+    p.add_argument("--out", default="race.json")
+    args = p.parse_args()
+    results = dict(
+        machine=dict(
+            platform=platform.platform(),
+            processor=platform.processor(),
+            cpus=os.cpu_count(),
+            jax=jax.__version__,
+            device=str(jax.devices()[0]),
+        ),
+        target=args.target,
+        window=args.window,
+        learners=[],
+    )
+    for text in args.learner:
+        name, overrides = parse_learner(text)
+        results["learners"].append(race(name, overrides, args))
+        with open(args.out, "w") as f:
+            json.dump(results, f)
+    for r in results["learners"]:
+        succ = np.mean(r["evaluation"]["success_rate"])
+        print(
+            f"{r['name']:12s} to {args.target}: "
+            f"{r['env_steps_to_target'] and r['env_steps_to_target'] / 1e6}M env steps, "
+            f"{r['wall_s_to_target']} s wall (compile {r['compile_s']:.0f} s); final eval "
+            f"success {succ:.3f}"
+        )
+
+
+if __name__ == "__main__":
+    main()
