@@ -59,6 +59,9 @@ def parse(argv: list[str]):
     preset, argv = _take_preset(argv)
     if preset is not None:  # ``sparsecomm train|imitate --preset NAME [--config.* ...]``
         command = argv[0] if argv else None
+        if preset in PRESETS and command in COMMANDS and command not in PRESETS[preset]:
+            serves = " and ".join(f"'sparsecomm {c}'" for c in PRESETS[preset])
+            raise ValueError(f"--preset {preset} serves only {serves}, not {command!r}")
         if preset not in PRESETS or command not in PRESETS[preset]:
             raise ValueError(
                 f"--preset must be one of {sorted(PRESETS)} and follow 'sparsecomm train' or "

@@ -217,8 +217,9 @@ class RLConfig(LearnerConfig):
             "algo": (self.algo in ALGOS, f"one of {ALGOS}"),
             "ppo_epochs": (self.ppo_epochs >= 1, ">= 1"),
             "ppo_minibatches": (
-                self.ppo_minibatches >= 1 and self.num_envs % self.ppo_minibatches == 0,
-                f">= 1 and divide num_envs ({self.num_envs})",
+                self.ppo_minibatches >= 1
+                and (not ppo or self.num_envs % self.ppo_minibatches == 0),
+                f">= 1 and, with algo 'ppo', divide num_envs ({self.num_envs})",
             ),
             "ppo_clip": (self.ppo_clip > 0, "> 0"),
             "channel.mode": (
@@ -367,6 +368,9 @@ PRESETS: dict[str, dict[str, RLConfig | ILConfig]] = {
             num_updates=800,
         ),
     },
+    "paper": {
+        "train": RLConfig(num_envs=32, lr_final=1e-4, lr_decay_steps=1000, num_updates=1500),
+    },
     "silent": {
         "train": RLConfig(
             env=SMALL_TASK,
@@ -393,6 +397,11 @@ PRESETS: dict[str, dict[str, RLConfig | ILConfig]] = {
 64 episodes per update for 800 updates. RL: lambda 0 sends ~52 bits; with the default
 controller 10 untuned seeds reached 0.989 success at 17.5 bits. Imitation of the oracle: 3-4
 minutes for three seeds on 2 CPU cores (docs/budget.md).
+
+``paper``: the paper's task, RL with 32 episodes per update and the learning rate falling
+linearly from 1e-3 to 1e-4 over the first 1000 updates, 1500 updates (12.3M env steps per
+seed): the mean success of 2 tuning seeds passed 0.95 after 6.8M env steps, 4x sooner than
+the default's 256 episodes at a constant rate (docs/paper-task.md).
 
 ``silent`` (the README's first command): the same task with links that fall silent
 (:data:`SILENT_CHANNEL`: a gate per link, silent links hold their last message, a 16-bit

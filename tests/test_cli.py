@@ -162,3 +162,13 @@ def test_the_silent_preset_prices_the_wire_and_holds_silent_links():
     assert cmd.config.budget.bits == 24.0 and cmd.config.budget.relief_floor == 0.5
     assert str(cmd.out) == "runs/silent" and cmd.config.num_updates == 5
     assert parse(["imitate", "--preset", "silent"]).config.channel == channel
+
+
+def test_the_paper_preset_is_the_fast_learner_on_the_paper_task():
+    cmd = parse(["train", "--preset", "paper", "--config.num-updates", "9"])
+    cfg = cmd.config
+    assert cfg.env == RLConfig().env and cfg.algo == "a2c" and cfg.num_updates == 9
+    assert (cfg.num_envs, cfg.lr, cfg.lr_final, cfg.lr_decay_steps) == (32, 1e-3, 1e-4, 1000)
+    assert str(cmd.out) == "runs/paper"
+    with pytest.raises(ValueError, match="--preset paper serves only 'sparsecomm train', not"):
+        parse(["imitate", "--preset", "paper"])
