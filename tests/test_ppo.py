@@ -147,3 +147,19 @@ def test_bad_ppo_fields_are_refused_by_name(fields, message):
         dataclasses.replace(TINY, **fields)
     # the PPO fields do not bind the default learner: 4 minibatches of 3 episodes is no error
     assert RLConfig(num_envs=3).ppo_minibatches == 4
+
+
+@pytest.mark.slow
+def test_a_short_ppo_run_learns_the_small_task():
+    """80 updates of 32 episodes (4 epochs of 2 minibatches) on the CPU-sized task take the
+    team from ~2% success to ~50% (measured: 0.016 -> 0.500 over 256 evaluation episodes)."""
+    cfg = dataclasses.replace(
+        TINY, env=SMALL_TASK, num_envs=32, ppo_epochs=4, ppo_minibatches=2, gae_lambda=0.95
+    )
+    tr = make_train(cfg)
+    state = tr.init(jax.random.key(0), 0.0)
+    ev = jax.jit(lambda p: tr.evaluate(p, jax.random.key(99), 256))
+    before = float(ev(state.params["actor"])["success_rate"])
+    state, _ = jax.jit(tr.update_chunk, static_argnums=1)(state, 80)
+    after = float(ev(state.params["actor"])["success_rate"])
+    assert before < 0.05 and after > 0.25, (before, after)

@@ -178,7 +178,10 @@ def play(
     (out / "episodes.jsonl").unlink(missing_ok=True)
     start = time.monotonic()
     kills, restarts = [], []
-    previous = signal.signal(signal.SIGTERM, _interrupt)
+    # Ctrl-C and SIGTERM stop every process. SIGINT is set here too, not left to Python: a
+    # launcher started in the background of a script inherits SIGINT ignored, and Python then
+    # installs no handler of its own.
+    previous = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
         world = procs.start("world", world_cmd)
         team_procs = [procs.start("agent_0", agent_cmd(0))]
@@ -227,7 +230,8 @@ def play(
     finally:
         procs.close()
         monitor.close()
-        signal.signal(signal.SIGTERM, previous)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     return {
         "episodes": read_episodes(out),
         "kills": kills,
