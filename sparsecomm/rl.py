@@ -113,31 +113,43 @@ def make_train(config: RLConfig, env=None) -> Learner:
             remat=config.remat,
             keep_hidden=config.budget.decoupled,
         )
-        valid = traj.valid.astype(jnp.float32)
         values = jax.lax.map(lambda s: team.value(params["critic"], s), traj.states)
-        rewards = traj.rewards * config.reward_scale * valid[..., None]
-        reinforced = config.channel.samples_symbols
-        if reinforced:  # RCL: each agent pays bit_cost per payload bit it sends
-            sent = traj.link_bits.sum(-1) * valid[..., None]  # (T, B, K) bits by sender
-            rewards = rewards - config.channel.bit_cost * config.reward_scale * sent
-        adv, targets = discounted_targets(
-            rewards,
-            jax.lax.stop_gradient(values),
-            traj.dones,
-            traj.valid,
-            config.gamma,
-            config.gae_lambda,
-        )
-        adv_std = None
-        if config.normalize_advantages:
-            adv, adv_std = normalize_per_agent(adv, traj.valid)
-        logp = jnp.take_along_axis(traj.log_probs, traj.actions[..., None], -1)[..., 0]
-        if reinforced:  # the symbols sent are actions too, with the same advantage
+        adv, targets, adv_std = advantages(config, traj, values)
+        logp = action_log_probs(traj)
+        if config.channel.samples_symbols:  # the symbols sent are actions too (RCL)
             logp = logp + traj.msg_log_probs
         pg = -(logp * jax.lax.stop_gradient(adv)).sum(-1)
         return _objective(config, traj, pg, values, targets, lam, update, adv_std)
 
     return make_learner(config, loss_fn, tx, env=env, team=team)
+
+
+def advantages(config: RLConfig, traj: Trajectory, values):
+    """The advantages, the critic's targets (both (T, B, K)) and, when they are standardised,
+    the advantages' per-agent standard deviations (K,) (else None), from the scaled rewards
+    (minus ``bit_cost`` per payload bit sent, RCL) and the critic's ``values`` (T, B, K)."""
+    valid = traj.valid.astype(jnp.float32)
+    rewards = traj.rewards * config.reward_scale * valid[..., None]
+    if config.channel.samples_symbols:  # RCL: each agent pays bit_cost per payload bit it sends
+        sent = traj.link_bits.sum(-1) * valid[..., None]  # (T, B, K) bits by sender
+        rewards = rewards - config.channel.bit_cost * config.reward_scale * sent
+    adv, targets = discounted_targets(
+        rewards,
+        jax.lax.stop_gradient(values),
+        traj.dones,
+        traj.valid,
+        config.gamma,
+        config.gae_lambda,
+    )
+    adv_std = None
+    if config.normalize_advantages:
+        adv, adv_std = normalize_per_agent(adv, traj.valid)
+    return adv, targets, adv_std
+
+
+def action_log_probs(traj: Trajectory):
+    """(T, B, K) log-probabilities of the actions the trajectory executed."""
+    return jnp.take_along_axis(traj.log_probs, traj.actions[..., None], -1)[..., 0]
 
 
 def _objective(config: RLConfig, traj: Trajectory, pg, values, targets, lam, update, adv_std):
@@ -214,15 +226,8 @@ def _make_ppo(config: RLConfig, env, team, tx) -> Learner:
             config.num_envs,
             keep_hidden=config.budget.decoupled,
         )
-        rewards = traj.rewards * config.reward_scale * traj.valid[..., None]
-        values = critic(params, traj.states)
-        adv, targets = discounted_targets(
-            rewards, values, traj.dones, traj.valid, config.gamma, config.gae_lambda
-        )
-        adv_std = None
-        if config.normalize_advantages:
-            adv, adv_std = normalize_per_agent(adv, traj.valid)
-        logp = jnp.take_along_axis(traj.log_probs, traj.actions[..., None], -1)[..., 0]
+        adv, targets, adv_std = advantages(config, traj, critic(params, traj.states))
+        logp = action_log_probs(traj)
         batch = Batch(key, traj.actions, logp, adv, targets, traj.states, adv_std)
         return batch, LossAux(episode_metrics(traj), traj.hidden, traj.valid)
 
@@ -241,7 +246,7 @@ def _make_ppo(config: RLConfig, env, team, tx) -> Learner:
             episodes=episodes,
             actions=pick(batch.actions),
         )
-        logp = jnp.take_along_axis(traj.log_probs, traj.actions[..., None], -1)[..., 0]
+        logp = action_log_probs(traj)
         pg, ratio = clipped_policy_loss(
             logp, pick(batch.log_probs), pick(batch.advantages), config.ppo_clip
         )
