@@ -34,6 +34,7 @@ import numpy as np
 
 from sparsecomm.configs import RLConfig
 from sparsecomm.rl import make_train
+from sparsecomm.stats import first_pass
 
 
 def parse_learner(text: str) -> tuple[str, dict]:
@@ -55,16 +56,6 @@ def parse_learner(text: str) -> tuple[str, dict]:
         else:
             overrides[field] = value
     return name, overrides
-
-
-def first_pass(curve: np.ndarray, target: float, window: int) -> int | None:
-    """0-based update at which the moving average of ``curve`` over ``window`` updates first
-    exceeds ``target``, or None."""
-    if len(curve) < window:
-        return None
-    avg = np.convolve(curve, np.ones(window) / window, mode="valid")
-    hits = np.nonzero(avg > target)[0]
-    return None if len(hits) == 0 else int(hits[0] + window - 1)
 
 
 def race(name: str, overrides: dict, args) -> dict:

@@ -1,9 +1,9 @@
 """Command line: ``sparsecomm train | imitate | eval | render | export | fit-code | reproduce |
-deploy`` (tyro).
+paper-task | deploy`` (tyro).
 
 Every flag is a documented config field: ``sparsecomm train --help`` lists them all. The work is
-done in :mod:`sparsecomm.experiment`, :mod:`sparsecomm.codestats`, :mod:`sparsecomm.reproduce` and
-:mod:`sparsecomm.deploy`; this module only parses.
+done in :mod:`sparsecomm.experiment`, :mod:`sparsecomm.codestats`, :mod:`sparsecomm.reproduce`,
+:mod:`sparsecomm.paper_task` and :mod:`sparsecomm.deploy`; this module only parses.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ from sparsecomm.experiment import (
     render,
     train,
 )
+from sparsecomm.paper_task import PaperTask, paper_task
 from sparsecomm.reproduce import Reproduce, reproduce
 
 
@@ -48,6 +49,7 @@ COMMANDS = {
     "export": (Export, export_team),
     "fit-code": (FitCode, fit_code),
     "reproduce": (Reproduce, reproduce),
+    "paper-task": (PaperTask, paper_task),
     "deploy": (Deploy, deploy),
 }
 

@@ -316,17 +316,20 @@ class ILConfig(LearnerConfig):
         }
 
 
-def check_budget_fits(config: LearnerConfig, budgets=None, name: str = "budget.bits") -> None:
+def check_budget_fits(
+    config: LearnerConfig, budgets=None, name: str = "budget.bits", owner: str | None = None
+) -> None:
     """Refuse budgets the run cannot use: a budget needs a channel with a differentiable bit
     penalty (``ChannelConfig.has_penalty``: the ``discrete`` mode) and at most the most bits the
     team's code can send per step. ``budgets`` defaults to ``config.budget.bits``; ``None``
-    entries mean no budget."""
+    entries mean no budget. The message names the field ``owner.name`` (``owner``: the config's
+    class unless given)."""
     if budgets is None:
         budgets = (config.budget.bits,)
     budgets = [b for b in budgets if b is not None]
     if not budgets:
         return
-    owner = type(config).__name__
+    owner = owner or type(config).__name__
     if not config.channel.has_penalty:
         raise ValueError(
             f"{owner}.{name} needs channel.mode 'discrete' (a channel with a bit penalty), "
@@ -370,6 +373,12 @@ PRESETS: dict[str, dict[str, RLConfig | ILConfig]] = {
     },
     "paper": {
         "train": RLConfig(num_envs=32, lr_final=1e-4, lr_decay_steps=1000, num_updates=1500),
+        "imitate": ILConfig(
+            agent=AgentConfig(message_gate="hard"),
+            budget=dataclasses.replace(ILConfig.budget, halving_updates=40.0),
+            num_envs=32,
+            num_updates=1000,
+        ),
     },
     "silent": {
         "train": RLConfig(
@@ -402,7 +411,9 @@ minutes for three seeds on 2 CPU cores (docs/budget.md).
 linearly from 1e-3 to 1e-4 over the first 1000 updates, 1500 updates (12.3M env steps per
 seed). Chosen on tuning seeds; on seeds 0-4 the mean success passed 0.95 after 8.8M env
 steps (13.4 minutes for the 5 seeds on 2 CPU cores), 3.1x fewer than the default's 256
-episodes at a constant rate (docs/paper-task.md).
+episodes at a constant rate (docs/paper-task.md). Imitation: the hard gate, 32 episodes per
+update, the budget's target halving every 40 updates, 1000 updates: the settings of
+docs/budget.md's confirmed controller v6 on this task (0.996 success at lambda 0).
 
 ``silent`` (the README's first command): the same task with links that fall silent
 (:data:`SILENT_CHANNEL`: a gate per link, silent links hold their last message, a 16-bit

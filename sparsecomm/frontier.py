@@ -129,25 +129,37 @@ def budget_claims(table: list[dict]) -> list[dict]:
     return out
 
 
-def targets(table: list[dict]) -> list[dict]:
-    """Issue 14's targets per learner: budget 16 (and the stretch, 8) at >= 95% of lambda 0's
-    success, with final payload bits within 10% of the budget."""
+def targets(
+    table: list[dict],
+    goals: tuple[float, ...] = (TARGET_BUDGET, STRETCH_BUDGET),
+    max_length_ratio: float | None = None,
+) -> list[dict]:
+    """Targets per series: each budget of ``goals`` (issue 14's: 16, then the stretch, 8) at >=
+    ``TARGET_SUCCESS`` of lambda 0's success, with final payload bits within
+    ``TARGET_BITS_TOL`` of the budget and, if ``max_length_ratio`` is given, episodes at most
+    that many times lambda 0's length."""
     out = []
     for learner, series in series_of(table):
         ref = reference(table, learner, series)
-        for goal in (TARGET_BUDGET, STRETCH_BUDGET):
+        for goal in goals:
             row = next((r for r in _in(table, learner, series) if r["budget"] == goal), None)
             if ref is None or row is None:
                 continue
-            success_ok = row["success"][0] >= TARGET_SUCCESS * ref["success"][0]
-            bits_ok = abs(row["payload_bits"][0] - goal) <= TARGET_BITS_TOL * goal
+            success = row["success"][0] / max(ref["success"][0], 1e-9)
+            length = row["episode_length"][0] / max(ref["episode_length"][0], 1e-9)
+            met = (
+                success >= TARGET_SUCCESS
+                and abs(row["payload_bits"][0] - goal) <= TARGET_BITS_TOL * goal
+                and (max_length_ratio is None or length <= max_length_ratio)
+            )
             out.append(
                 {
                     "learner": learner,
                     "series": series,
                     "budget": goal,
-                    "met": bool(success_ok and bits_ok),
-                    "success_ratio": row["success"][0] / max(ref["success"][0], 1e-9),
+                    "met": bool(met),
+                    "success_ratio": success,
+                    "length_ratio": length,
                     "bits": row["payload_bits"][0],
                 }
             )

@@ -4,8 +4,9 @@ A **run folder** is the ``--out`` of ``sparsecomm train`` or ``imitate``. Its ``
 (:data:`CHECKPOINT`, :mod:`sparsecomm.checkpoint`) holds the batched state of every run of the
 sweep and the metadata: the kind (:data:`KINDS`), the config and the sweep's axes, from which
 :func:`runs_of` rebuilds the list of runs. :func:`sparsecomm.sweep.run_sweep` writes it, beside
-``metrics.csv`` and ``tensorboard/``; :func:`sparsecomm.experiment.train` then writes
-:data:`RESULTS`, ``curves.png`` and ``team.gif``.
+``metrics.csv``, ``wall.csv`` (:data:`sparsecomm.sweep.WALL_CSV`) and ``tensorboard/``;
+:func:`sparsecomm.experiment.train` then writes :data:`RESULTS`, ``curves.png`` and
+``team.gif``.
 
 An **exported team** (``sparsecomm export``; every run ``sparsecomm deploy`` plays) is one run's
 actor, weights only: :data:`TEAM` (JSON: the kind, the config, the run, a note) and

@@ -155,6 +155,18 @@ def smooth(x: np.ndarray, window: int) -> np.ndarray:
     return out
 
 
+def first_pass(curve, target: float, window: int) -> int | None:
+    """0-based index at which the trailing moving average of ``curve`` (a 1-D series, e.g. the
+    mean training success over seeds, one value per update) over ``window`` values first
+    exceeds ``target``; None if it never does (or the series is shorter than ``window``)."""
+    curve = np.asarray(curve, np.float64)
+    if len(curve) < window:
+        return None
+    avg = np.convolve(curve, np.ones(window) / window, mode="valid")
+    hits = np.nonzero(avg > target)[0]
+    return None if len(hits) == 0 else int(hits[0] + window - 1)
+
+
 def _save(fig, legend_ax, title: str | None, out_png: str | Path) -> Path:
     """Legend on ``legend_ax``, optional title, tight layout; write the PNG and close."""
     import matplotlib.pyplot as plt

@@ -33,6 +33,12 @@ from sparsecomm.learner import Learner
 from sparsecomm.sharding import RUNS, is_primary, make_mesh, place_runs, to_host, use_mesh
 
 FIRST_COLUMNS = ["seed", "lam", "budget", "update", "env_steps", "episodes"]
+WALL_CSV = "wall.csv"
+"""A run folder's wall-clock log: one row ``update, wall_s`` per compiled chunk, ``wall_s`` the
+seconds the whole sweep (every run, one program) has trained when that chunk ended, compiling
+and earlier sessions of a resumed sweep included (updates redone after a resume are counted
+again: they cost time). Kept apart from ``metrics.csv`` so that the metrics of two identical
+runs stay identical byte for byte."""
 METRIC_ORDER = [
     "group_reward",
     "episode_length",
@@ -153,14 +159,20 @@ class _Log:
         primary: bool,
     ):
         self.runs, self.steps, self.episodes = runs, steps_per_update, episodes_per_update
-        self.csv = self.tb = self.file = None
+        self.csv = self.tb = self.file = self.wall = self.wall_file = None
         if not primary:
             return
-        path = out / "metrics.csv"
-        if resume_at > 0:
-            _truncate_csv(path, resume_at)
-        elif path.exists():
-            path.unlink()
+        path, wall = out / "metrics.csv", out / WALL_CSV
+        for p in (path, wall):
+            if resume_at > 0:
+                _truncate_csv(p, resume_at)
+            elif p.exists():
+                p.unlink()
+        new_wall = not wall.exists()
+        self.wall_file = open(wall, "a", newline="")
+        self.wall = csv.writer(self.wall_file)
+        if new_wall:
+            self.wall.writerow(["update", "wall_s"])
         self.header = path.exists() and resume_at > 0
         self.file = open(path, "a", newline="")
         self.csv = csv.writer(self.file)
@@ -184,8 +196,9 @@ class _Log:
         closing the writer does, so the writer is closed and a new one (a new event file) opened.
         Without this a SIGKILL just after a checkpoint lost the TensorBoard points of its last
         updates for good (the resumed run starts after them)."""
-        if self.file is not None:
-            self.file.flush()
+        for f in (self.file, self.wall_file):
+            if f is not None:
+                f.flush()
         if self.tb is not None:
             self.tb.close()
             self._open_tb(None, update)
@@ -218,8 +231,14 @@ class _Log:
         if self.tb is not None:
             self.tb.flush()
 
+    def write_wall(self, update: int, wall_s: float) -> None:
+        """Log that the sweep had trained ``wall_s`` seconds when update ``update`` ended."""
+        if self.wall is not None:
+            self.wall.writerow([update, f"{wall_s:.3f}"])
+            self.wall_file.flush()
+
     def close(self) -> None:
-        for f in (self.file, self.tb):
+        for f in (self.file, self.tb, self.wall_file):
             if f is not None:
                 f.close()
 
@@ -361,6 +380,7 @@ def run_sweep(
         state = new_state
         done += n
         chunks += 1
+        log.write_wall(done, elapsed + time.time() - t0)
         last = {k: float(metrics[k][:, -1].mean()) for k in METRIC_ORDER if k in metrics}
         bar.update(n)
         # env steps per second of the whole sweep (all runs), compilation included

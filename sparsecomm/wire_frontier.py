@@ -15,6 +15,14 @@ Reads the evaluations of trained sweeps (a run folder's ``results.json``, or the
   ``datagrams_per_step``). A deployed team plays ``eval``'s episodes exactly, so this is what
   ``sparsecomm deploy`` measures; ``--deployed`` adds a deployment's measured figures to its
   row (``"deployed"``). ``null`` for an evaluation made before these counts existed.
+  Each row also says which learner made it, and how soon: ``algo`` (RL: ``RLConfig.algo``;
+  imitation: ``"dagger"`` while the expert's share of the driving falls, else ``"bc"``),
+  ``expert`` (imitation: ``"oracle"`` or ``"rl"``, a trained team; RL: ``null``),
+  ``episodes_per_update``, and ``env_steps_to_095`` / ``wall_s_to_095``: the env steps per run
+  and the seconds of training of the whole sweep (one program for every group, compiling
+  included: the folder's ``wall.csv``) at which the group's mean training success over its
+  seeds, a moving average over :data:`WINDOW` updates, first exceeds 0.95 (``null``: never, or
+  a folder without the logs).
 - ``frontier.png``: success against wire bits per step, and the share of link-steps that speak.
 
 Command line (the numbers of docs/wire.md)::
@@ -29,10 +37,13 @@ import argparse
 import json
 from pathlib import Path
 
+import numpy as np
+
 from sparsecomm import runfolder
 from sparsecomm.deploy.wire import HEADER_BYTES, UDP_IP_BYTES
 from sparsecomm.jsonfile import write_json
-from sparsecomm.stats import bootstrap_ci
+from sparsecomm.stats import bootstrap_ci, curves, first_pass, read_csv
+from sparsecomm.sweep import WALL_CSV
 
 TASKS = ("small", "paper")
 LEARNERS = ("rl", "imitation")
@@ -46,6 +57,44 @@ COLUMNS = {
 """Row field -> the evaluation metric it summarises."""
 DATAGRAM_HEADER_BITS = 8 * (HEADER_BYTES + UDP_IP_BYTES)
 """328: the runtime's datagram header (13 bytes) and the IPv4 and UDP headers (28 bytes)."""
+TARGET, WINDOW = 0.95, 10
+"""The success a team must pass, and the updates of the moving average: the issue's 0.95 and
+``benchmarks/learner_race.py``'s default window, so a row and a race count alike."""
+
+
+def time_to_target(folder: str | Path) -> dict[tuple, tuple[float | None, float | None]]:
+    """Per group ``(budget, lam)`` of a run folder: ``(env_steps, wall_s)`` per run at which
+    the group's mean training success first passes :data:`TARGET` (see the module's doc);
+    ``{}`` without ``metrics.csv``, ``wall_s`` None without ``wall.csv``."""
+    folder = Path(folder)
+    if not (folder / "metrics.csv").exists():
+        return {}
+    wall = read_csv(folder / WALL_CSV) if (folder / WALL_CSV).exists() else None
+    out = {}
+    for (budget, lam), (steps, vals) in curves(read_csv(folder / "metrics.csv"),
+                                               "success_rate").items():  # fmt: skip
+        key = (None if np.isnan(budget) else float(budget), float(lam))
+        u = first_pass(np.nanmean(vals, 0), TARGET, WINDOW)
+        if u is None:
+            out[key] = (None, None)
+            continue
+        update = round(steps[u] / steps[0])  # the log starts at update 1
+        wall_s = None
+        if wall is not None:  # the chunk that holds that update ended at this wall-clock
+            ended = np.nonzero(wall["update"] >= update)[0]
+            wall_s = float(wall["wall_s"][ended[0]]) if len(ended) else None
+        out[key] = (float(steps[u]), wall_s)
+    return out
+
+
+def learner_of(config, learner: str) -> dict:
+    """The row fields that say which learner made a group: ``algo``, ``expert``,
+    ``episodes_per_update``."""
+    if learner == "rl":
+        return {"algo": config.algo, "expert": None, "episodes_per_update": config.num_envs}
+    algo = "dagger" if config.beta_end < config.beta_start else "bc"
+    expert = "oracle" if config.expert == "oracle" else "rl"
+    return {"algo": algo, "expert": expert, "episodes_per_update": config.num_envs}
 
 
 def network_bits(run: dict) -> float | None:
@@ -56,8 +105,9 @@ def network_bits(run: dict) -> float | None:
     return run["datagram_bits_per_step"] + DATAGRAM_HEADER_BITS * run["datagrams_per_step"]
 
 
-def rows(results: dict, config, task: str, learner: str) -> list[dict]:
-    """The summary rows of one sweep's evaluation (its ``runs`` list) and config."""
+def rows(results: dict, config, task: str, learner: str, times: dict | None = None) -> list[dict]:
+    """The summary rows of one sweep's evaluation (its ``runs`` list) and config; ``times``:
+    :func:`time_to_target` of its folder."""
     if task not in TASKS:
         raise ValueError(f"task must be one of {TASKS}, got {task!r}")
     if learner not in LEARNERS:
@@ -68,8 +118,8 @@ def rows(results: dict, config, task: str, learner: str) -> list[dict]:
     out = []
     for (budget, lam), runs in groups.items():
         counts = None if budget is None else config.channel.prices
-        row = {"task": task, "learner": learner, "counts": counts, "budget": budget, "lam": lam}
-        row["seeds"] = len(runs)
+        row = {"task": task, "learner": learner, **learner_of(config, learner)}
+        row |= {"counts": counts, "budget": budget, "lam": lam, "seeds": len(runs)}
         for name, metric in COLUMNS.items():
             row[name] = list(bootstrap_ci([r[metric] for r in runs]))
         network = [network_bits(r) for r in runs]
@@ -77,6 +127,8 @@ def rows(results: dict, config, task: str, learner: str) -> list[dict]:
         row["check_bits"] = config.channel.check_bits
         row["link_gate"] = config.channel.link_gate
         row["on_silence"] = config.channel.on_silence
+        steps, wall_s = (times or {}).get((budget, lam), (None, None))
+        row["env_steps_to_095"], row["wall_s_to_095"] = steps, wall_s
         out.append(row)
     return out
 
@@ -85,7 +137,8 @@ def read_rows(path: str | Path, task: str, learner: str) -> list[dict]:
     """The rows of an evaluation file inside a run folder (its config read from the folder)."""
     path = Path(path)
     results = json.loads(path.read_text())
-    return rows(results, runfolder.read_config(path.parent), task, learner)
+    config = runfolder.read_config(path.parent)
+    return rows(results, config, task, learner, time_to_target(path.parent))
 
 
 def deployed(report: dict) -> dict:

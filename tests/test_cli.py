@@ -58,6 +58,9 @@ def test_train_eval_render(tmp_path, fast_compile):
         assert col in header
     rows = (out / "metrics.csv").read_text().splitlines()[1:]
     assert len(rows) == 2 * 2 * 2  # updates x seeds x lambdas
+    wall = [line.split(",") for line in (out / "wall.csv").read_text().splitlines()]
+    assert wall[0] == ["update", "wall_s"] and [int(u) for u, _ in wall[1:]] == [1, 2]
+    assert 0 < float(wall[1][1]) <= float(wall[2][1])  # seconds trained when each chunk ended
     results = json.loads((out / "results.json").read_text())
     assert set(results["by_group"]) == {"0", "0.01"} and len(results["runs"]) == 4
     main(["eval", "--run", str(out), "--episodes", "4"])
@@ -170,5 +173,9 @@ def test_the_paper_preset_is_the_fast_learner_on_the_paper_task():
     assert cfg.env == RLConfig().env and cfg.algo == "a2c" and cfg.num_updates == 9
     assert (cfg.num_envs, cfg.lr, cfg.lr_final, cfg.lr_decay_steps) == (32, 1e-3, 1e-4, 1000)
     assert str(cmd.out) == "runs/paper"
-    with pytest.raises(ValueError, match="--preset paper serves only 'sparsecomm train', not"):
-        parse(["imitate", "--preset", "paper"])
+    il = parse(["imitate", "--preset", "paper"]).config  # docs/budget.md's controller v6 runs
+    assert il.env == ILConfig().env and il.agent.message_gate == "hard" and il.num_envs == 32
+    assert (il.num_updates, il.budget.halving_updates, il.budget.relief_floor) == (1000, 40, 0.1)
+    serves = "--preset paper serves only 'sparsecomm train' and 'sparsecomm imitate', not 'eval'"
+    with pytest.raises(ValueError, match=serves):
+        parse(["eval", "--preset", "paper"])

@@ -123,6 +123,50 @@ def test_wire_frontier_rows_count_the_network_from_the_datagrams():
         wire_frontier.rows({"runs": runs}, config, "big", "rl")
 
 
+def test_wire_frontier_rows_say_the_learner_and_when_its_mean_success_passed(tmp_path):
+    """Group (None, 0): 2 seeds fail for 10 updates, then always succeed; the moving average over
+    10 updates first exceeds 0.95 at update 20, inside the chunk that ended at update 21.
+    Budget 16: never. ``time_to_target`` reads it from the folder's CSVs."""
+    import csv
+
+    from sparsecomm import wire_frontier
+    from sparsecomm.configs import ILConfig, RLConfig
+
+    steps = 1024  # env steps per update
+    with open(tmp_path / "metrics.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["seed", "lam", "budget", "update", "env_steps", "episodes", "success_rate"])
+        for u in range(1, 29):
+            for budget in ("", "16"):
+                for seed in (0, 1):
+                    ok = budget == "" and u > 10
+                    w.writerow([seed, 0.0, budget, u, u * steps, u * 4, 1.0 if ok else 0.5])
+    (tmp_path / "wall.csv").write_text("update,wall_s\n7,7.5\n14,14.5\n21,21.5\n28,28.5\n")
+    times = wire_frontier.time_to_target(tmp_path)
+    assert times == {(None, 0.0): (20.0 * steps, 21.5), (16.0, 0.0): (None, None)}
+    (tmp_path / "wall.csv").unlink()
+    assert wire_frontier.time_to_target(tmp_path)[(None, 0.0)] == (20.0 * steps, None)
+    assert wire_frontier.time_to_target(tmp_path / "nothing") == {}
+
+    runs = [
+        {"seed": s, "lam": 0.0, "budget": b, "success_rate": 0.9, "episode_length": 20.0,
+         "bits_per_step": 10.0, "wire_bits_per_step": 30.0, "speaking_fraction": 1.0}
+        for b in (None, 16.0) for s in (0, 1)
+    ]  # fmt: skip
+    ppo = RLConfig(algo="ppo", num_envs=32)
+    rl = wire_frontier.rows({"runs": runs}, ppo, "paper", "rl", times)
+    learners = [(r["algo"], r["expert"], r["episodes_per_update"]) for r in rl]
+    assert learners == [("ppo", None, 32)] * 2
+    assert [(r["env_steps_to_095"], r["wall_s_to_095"]) for r in rl] == [
+        (20.0 * steps, 21.5),
+        (None, None),
+    ]
+    il = wire_frontier.rows({"runs": runs}, ILConfig(), "paper", "imitation")
+    assert {(r["algo"], r["expert"], r["env_steps_to_095"]) for r in il} == {
+        ("dagger", "oracle", None)
+    }
+
+
 def test_wire_frontier_reads_a_deployments_figures_over_its_runs():
     from sparsecomm import wire_frontier
 

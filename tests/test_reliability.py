@@ -280,5 +280,8 @@ def test_kill_9_during_a_chunk_then_resume_gives_the_same_run_and_logs(tmp_path)
     rows = (out / "metrics.csv").read_text().splitlines()
     assert rows == (tmp_path / "whole" / "metrics.csv").read_text().splitlines()
     assert len(rows) == 1 + 40 * 2
+    wall = [line.split(",") for line in (out / "wall.csv").read_text().splitlines()[1:]]
+    assert [int(u) for u, _ in wall] == list(range(1, 41))  # one row per chunk, none twice
+    assert all(float(a[1]) <= float(b[1]) for a, b in zip(wall[:-1], wall[1:], strict=True))
     shown = _tb_scalars(out / "tensorboard")
     assert shown and all(sorted(v) == sorted(set(v)) and len(v) == 40 for v in shown.values())
