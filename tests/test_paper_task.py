@@ -15,6 +15,7 @@ TINY = [
 ]  # fmt: skip
 
 
+@pytest.mark.slow  # five parts compiled: ~1.5 minutes on 2 CPU cores
 def test_every_part_then_the_issues_rows_and_verdicts(tmp_path, fast_compile):
     out, results = tmp_path / "runs", tmp_path / "results"
     main(["paper-task", *TINY, "--out", str(out), "--results", str(results)])
