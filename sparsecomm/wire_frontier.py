@@ -70,9 +70,9 @@ def time_to_target(folder: str | Path) -> dict[tuple, tuple[float | None, float 
     if not (folder / "metrics.csv").exists():
         return {}
     wall = read_csv(folder / WALL_CSV) if (folder / WALL_CSV).exists() else None
+    success = curves(read_csv(folder / "metrics.csv"), "success_rate")
     out = {}
-    for (budget, lam), (steps, vals) in curves(read_csv(folder / "metrics.csv"),
-                                               "success_rate").items():  # fmt: skip
+    for (budget, lam), (steps, vals) in success.items():
         key = (None if np.isnan(budget) else float(budget), float(lam))
         u = first_pass(np.nanmean(vals, 0), TARGET, WINDOW)
         if u is None:
