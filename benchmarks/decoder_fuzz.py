@@ -158,12 +158,12 @@ def _mutate(r: random.Random, kind: str, pool: list[bytes], longest: int, c: int
 
 
 def _crc(body: bytes, c: int, code, prev) -> bytes:
-    """The CRC-32 of a packet's body, seeded with its implicit header: the count C (the CRC of
-    sparsecomm.channel.codes), then for a fitted code its fingerprint and the previous message
-    (``FittedCode._crc``)."""
-    header = c.to_bytes(4, "big")
+    """The CRC-32 of a packet's body, seeded with its implicit header: the count C and the
+    code's fingerprint (the CRC of sparsecomm.channel.codes), then for a fitted code the
+    previous message (``FittedCode._crc``)."""
+    header = c.to_bytes(4, "big") + code.fingerprint
     if isinstance(code, FittedCode):
-        header += code.fingerprint + prev.astype(np.uint8).tobytes()
+        header += prev.astype(np.uint8).tobytes()
     return zlib.crc32(body, zlib.crc32(header)).to_bytes(4, "big")
 
 

@@ -1,6 +1,7 @@
 """The channel of SPEC sections 1-3: quantizer statistics, gradient, penalty bound, codes and
 wire format."""
 
+import hashlib
 import itertools
 import math
 import zlib
@@ -347,6 +348,98 @@ def test_bad_shapes_raise_packet_error(shape):
 
 
 @settings(max_examples=300, deadline=None)
+def _spec_identity(code: channel.Code) -> bytes:
+    """A code's identity as the format says (written here from the spec, not from the module):
+    the name's length and the name, ``n`` and levels in ``n`` bytes, the remap's rows (4 bytes)
+    and its entries (``n`` bytes each), all big-endian."""
+    n = max(1, (code.levels.bit_length() + 7) // 8)
+    out = bytes([len(code.name)]) + code.name.encode() + bytes([n]) + code.levels.to_bytes(n, "big")
+    out += len(code.remap).to_bytes(4, "big")
+    return out + b"".join(x.to_bytes(n, "big") for row in code.remap for x in row)
+
+
+def _spec_crc(code: channel.Code, count: int, body: bytes) -> bytes:
+    """A packet's CRC-32 as the format says: over C (4 bytes), the fingerprint, the body."""
+    header = count.to_bytes(4, "big") + hashlib.sha256(_spec_identity(code)).digest()[:4]
+    return zlib.crc32(header + body).to_bytes(4, "big")
+
+
+def test_code_identity_is_the_documented_layout():
+    assert channel.Code("paper", 15).identity == b"\x05paper\x01\x0f\x00\x00\x00\x00"
+    assert channel.Code("paper", 15).fingerprint == bytes.fromhex("ab9794b9")  # docs/channel.md
+    assert channel.Code("float32", 256).identity == b"\x07float32\x02\x01\x00" + bytes(4)
+    remap = ((0, 2, 1), (0, 1, 2))
+    assert channel.Code("paper", 2, remap).identity == (
+        b"\x05paper\x01\x02\x00\x00\x00\x02" + bytes([0, 2, 1, 0, 1, 2])
+    )
+    rng = np.random.default_rng(3)
+    codes = [channel.Code(name, levels) for name in channel.CODE_NAMES for levels in (1, 7, 15)]
+    codes += [channel.Code("paper", 300), channel.Code("fixed", 1 << 40)]
+    codes += [channel.Code("paper", 15, channel.frequency_remap(rng.random((4, 15))))]
+    for code in codes:
+        assert code.identity == _spec_identity(code)
+        assert code.fingerprint == hashlib.sha256(code.identity).digest()[:4]
+        m = _links(rng, (4,), code, null_share=0.3)
+        if m.any():
+            packet = channel.encode(m, code)
+            assert packet[-4:] == _spec_crc(code, 4, packet[:-4])
+    assert len({c.identity for c in codes}) == len({c.fingerprint for c in codes}) == len(codes)
+
+
+def same_bits(a, b) -> bool:
+    a, b = np.asarray(a), np.asarray(b)
+    if a.dtype == np.float32:
+        a, b = a.view(np.uint32), np.asarray(b, np.float32).view(np.uint32)
+    return a.shape == b.shape and np.array_equal(a, b)
+
+
+def _agreements():
+    """(code, C) agreements for the mismatch test: every code at several levels, with and
+    without a remap, several element counts (some whose packets have the same sizes), and a
+    fitted code."""
+    rng = np.random.default_rng(11)
+    remap = channel.frequency_remap(rng.integers(0, 100, (10, LEVELS)))
+    remap2 = channel.frequency_remap(rng.integers(0, 100, (10, LEVELS)))
+    source = np.where(rng.random((40, 30, 10)) < 0.3, rng.integers(1, LEVELS + 1, (40, 30, 10)), 0)
+    out = [(channel.Code(name, levels), 10) for name in channel.CODE_NAMES for levels in (7, 8, 15)]
+    out += [(channel.Code("paper", LEVELS, remap), 10), (channel.Code("paper", LEVELS, remap2), 10)]
+    out += [(channel.Code(name, LEVELS), c) for name in channel.CODE_NAMES for c in (9, 12)]
+    out += [(channel.Code("paper", 1), 10), (channel.Code("fixed", 1), 10)]
+    out += [(channel.fit(source, levels=LEVELS), 10)]
+    return out
+
+
+def test_a_receiver_with_another_agreement_refuses_every_packet():
+    """Every ordered pair of distinct agreements (code, C): packets of random valid messages
+    under one, decoded under the other, are all refused (the code's fingerprint and C are in the
+    CRC's implicit header), while the sender's own agreement decodes them exactly."""
+    agreements = _agreements()
+    assert len(set(agreements)) == len(agreements)
+    rng = np.random.default_rng(12)
+    silent = {}
+    sizes = {}
+    for i, (code, c) in enumerate(agreements):
+        kind = code if isinstance(code, channel.Code) else channel.Code("paper", LEVELS)
+        links = _links(rng, (120, c), kind, null_share=rng.random((120, 1)) * 0.9)
+        packets = [channel.encode(m, code) for m in links if m.any()]
+        for m, p in zip((m for m in links if m.any()), packets, strict=True):
+            assert same_bits(channel.decode(p, code, (c,)), m)
+        sizes[i] = {len(p) for p in packets}
+        for j, (other, d) in enumerate(agreements):
+            if j == i:
+                continue
+            for p in packets:
+                try:
+                    channel.decode(p, other, (d,))
+                except channel.PacketError:
+                    continue
+                silent[i, j] = silent.get((i, j), 0) + 1
+    assert silent == {}
+    # The test means something: many pairs share packet sizes, so only the check tells them apart.
+    shared = sum(bool(sizes[i] & sizes[j]) for i in sizes for j in sizes if i != j)
+    assert shared > len(agreements) ** 2 // 2
+
+
 @given(
     st.binary(max_size=48),
     st.sampled_from(channel.CODE_NAMES),
@@ -365,7 +458,7 @@ def test_decoding_arbitrary_bytes_gives_the_shape_or_packet_error(
     shape = tuple(shape)
     if crc and checksummed:
         count = int(np.prod(shape, dtype=np.int64))
-        data += zlib.crc32(data, zlib.crc32(count.to_bytes(4, "big"))).to_bytes(4, "big")
+        data += _spec_crc(code, count, data)
     try:
         out = channel.decode(data, code, shape, crc=crc)
     except channel.PacketError:

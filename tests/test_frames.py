@@ -2,6 +2,7 @@
 frames, each link written as its packet writes it, a clean ``FrameError`` for any bytes, and the
 check's strength against corrupted frames."""
 
+import hashlib
 import random
 import zlib
 
@@ -46,9 +47,23 @@ def same(a, b):
     return a.shape == b.shape and np.array_equal(a, b)
 
 
-def check_of(num_links, num_elements, check_bits, body):
+def fingerprint_of(code) -> bytes:
+    """A code's fingerprint as the format says (written here from the spec, not from the
+    module): the first 4 bytes of the SHA-256 of its identity (the name's length and the name,
+    ``n`` and levels in ``n`` bytes, the remap's rows in 4 bytes and its entries in ``n`` bytes
+    each, big-endian)."""
+    code = channel.as_code(code)
+    n = max(1, (code.levels.bit_length() + 7) // 8)
+    identity = bytes([len(code.name)]) + code.name.encode() + bytes([n])
+    identity += code.levels.to_bytes(n, "big") + len(code.remap).to_bytes(4, "big")
+    identity += b"".join(x.to_bytes(n, "big") for row in code.remap for x in row)
+    return hashlib.sha256(identity).digest()[:4]
+
+
+def check_of(code, num_links, num_elements, check_bits, body):
     """The check as the format says (written here from the spec, not from the module)."""
-    header = num_links.to_bytes(4, "big") + num_elements.to_bytes(4, "big") + bytes([check_bits])
+    header = fingerprint_of(code) + num_links.to_bytes(4, "big")
+    header += num_elements.to_bytes(4, "big") + bytes([check_bits])
     crc = zlib.crc32(header + body)
     return (crc >> (32 - check_bits)).to_bytes(check_bits // 8, "big") if check_bits else b""
 
@@ -83,7 +98,7 @@ def test_frames_round_trip(name, check_bits):
                     assert out.dtype == (np.float32 if name == "float32" else np.int64)
                     assert same(out, m)
                 assert data[len(data) - check_bits // 8 :] == (
-                    check_of(num_links, num_elements, check_bits, data[: -check_bits // 8])
+                    check_of(code, num_links, num_elements, check_bits, data[: -check_bits // 8])
                     if data and check_bits
                     else b""
                 )
@@ -271,9 +286,9 @@ def test_non_bytes_data_is_a_frame_error(value):
         channel.decode_frame(value, "paper", 2, 10)
 
 
-def _body(bits: str, num_links: int, num_elements: int, check_bits: int = 32) -> bytes:
+def _body(code, bits: str, num_links: int, num_elements: int, check_bits: int = 32) -> bytes:
     body = from_bits(bits)
-    return body + check_of(num_links, num_elements, check_bits, body)
+    return body + check_of(code, num_links, num_elements, check_bits, body)
 
 
 @pytest.mark.parametrize(
@@ -296,7 +311,7 @@ def _body(bits: str, num_links: int, num_elements: int, check_bits: int = 32) ->
     ],
 )
 def test_malformed_frames_raise_frame_error(name, bits, shape, match):
-    data = _body(bits, *shape)
+    data = _body(name, bits, *shape)
     with pytest.raises(channel.FrameError, match=match):
         channel.decode_frame(data, name, *shape)
 
@@ -326,7 +341,7 @@ def test_a_claimed_shape_is_checked_before_allocating():
     # would matter (a check of its own shape passes).
     body = from_bits("1" + "1")
     for links, elements in ((9, 1), (1, 8)):
-        frame = body + check_of(links, elements, 32, body)
+        frame = body + check_of("paper", links, elements, 32, body)
         with pytest.raises(channel.FrameError, match="too large"):
             channel.decode_frame(frame, "paper", links, elements)
 
@@ -448,3 +463,66 @@ def test_fitted_codes_keep_their_own_packets():
             call()
     assert issubclass(channel.FrameError, channel.PacketError)
     assert frames.CHECK_BITS == channel.CHECK_BITS == (0, 8, 16, 32)
+
+
+def _frame_agreements():
+    """(code, L, C, check_bits) agreements for the mismatch test: every code at several levels,
+    with and without a remap, every check width, and shapes whose frames can have the same
+    sizes."""
+    remap2 = channel.frequency_remap(np.random.default_rng(6).integers(0, 100, (10, LEVELS)))
+    codes = [channel.Code(name, levels) for name in channel.CODE_NAMES for levels in (7, 8, 15)]
+    codes += [CODES["remapped"], channel.Code("paper", LEVELS, remap2)]
+    out = [(code, 2, 10, width) for code in codes for width in (8, 16, 32)]
+    for name in channel.CODE_NAMES:
+        for shape in ((1, 10), (2, 5), (4, 5), (5, 2)):
+            out += [(channel.Code(name, LEVELS), *shape, width) for width in (8, 32)]
+    return out
+
+
+def test_a_receiver_with_another_agreement_refuses_every_frame():
+    """Every ordered pair of distinct agreements (code, L, C, check_bits): frames of random valid
+    messages under one, decoded under the other. A receiver with a 32-bit check refuses every
+    one (the code's fingerprint, L, C and the width are the check's implicit header). One with
+    a w-bit check can only refuse all but ~2^-w of what its parser accepts, like any w-bit
+    check: per pair of agreements and frame length the check passes all frames or none, so
+    ~2^-w of those cells pass. The sender's own agreement decodes them exactly."""
+    agreements = _frame_agreements()
+    assert len(set(agreements)) == len(agreements)
+    rng = np.random.default_rng(13)
+    frames_of = []
+    for code, num_links, num_elements, width in agreements:
+        links = [random_links(rng, (num_links, num_elements), code) for _ in range(60)]
+        data = [channel.encode_frame(m, code, check_bits=width) for m in links]
+        for m, d in zip(links, data, strict=True):
+            assert same(channel.decode_frame(d, code, num_links, num_elements, check_bits=width), m)
+        frames_of.append([d for d in data if d])
+    silent32 = {}
+    # A narrow receiver: the (pair, frame length) cells of frames its parser accepts, and those
+    # whose check passes (for one pair and length the check passes every frame or none).
+    parsed, silent = set(), set()
+    for i, sent in enumerate(frames_of):
+        for j, (code, num_links, num_elements, width) in enumerate(agreements):
+            if j == i:
+                continue
+            for d in sent:
+                try:
+                    channel.decode_frame(d, code, num_links, num_elements, check_bits=width)
+                except channel.FrameError:
+                    if width < 32:
+                        try:  # would its parser accept the frame, without the check?
+                            body = d[: len(d) - width // 8]
+                            channel.decode_frame(body, code, num_links, num_elements, check_bits=0)
+                        except channel.FrameError:
+                            continue
+                        parsed.add((width, i, j, len(d)))
+                    continue
+                if width == 32:
+                    silent32[i, j] = silent32.get((i, j), 0) + 1
+                else:
+                    parsed.add((width, i, j, len(d)))
+                    silent.add((width, i, j, len(d)))
+    assert silent32 == {}
+    for width in (8, 16):  # the check does the refusing: many cells parse under B
+        cells = sum(c[0] == width for c in parsed)
+        leaks = sum(c[0] == width for c in silent)
+        assert cells > 200 and leaks <= 4 * cells / 2**width, (width, leaks, cells)

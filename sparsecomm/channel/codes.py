@@ -26,10 +26,26 @@ Packet of one link (:func:`encode`, docs/channel.md):
 * Otherwise: a presence bitmap of ``C`` bits (bit k set when element k is not null), then the
   present elements' codewords in order, zero-padded to a whole byte (for ``float32`` the bitmap
   is padded to a byte and the floats follow, 4 bytes each), then a CRC-32 (``zlib.crc32``, 4
-  bytes, big-endian) of the element count ``C`` (4 bytes big-endian: an implicit header, agreed
-  and not sent, so a receiver expecting another shape gets a mismatch) and everything before
-  it. No length field: the decoder knows where the packet must end and rejects any other
-  length. Wire bits: ``8 * ceil((C + codeword bits) / 8) + 32``.
+  bytes, big-endian) of an implicit header, agreed and not sent, and everything before it. The
+  implicit header is the element count ``C`` (4 bytes big-endian) followed by the code's
+  :attr:`Code.fingerprint` (4 bytes), so a receiver agreed on another shape or another code
+  (name, levels or remap) gets a mismatch instead of a wrong message. No length field: the
+  decoder knows where the packet must end and rejects any other length. Wire bits:
+  ``8 * ceil((C + codeword bits) / 8) + 32``.
+
+The code's **identity** (:attr:`Code.identity`), the canonical bytes of what sender and
+receiver agree on, is (all integers big-endian, unsigned):
+
+1. 1 byte, the length of the name, then the name in ASCII (``paper``, ``fixed``, ``float32``);
+2. 1 byte ``n``, then ``levels`` in ``n`` bytes (``n >= 1`` minimal: ``ceil(bits / 8)``);
+3. 4 bytes, the number ``R`` of rows of ``Code.remap`` (0: no remap);
+4. ``R * (levels + 1)`` entries ``remap[k][m]``, row by row, ``n`` bytes each.
+
+Its **fingerprint** (:attr:`Code.fingerprint`) is the first 4 bytes of its SHA-256. Two
+agreements that differ only in the code (or only in ``C``) change the header in one 4-byte word,
+and a CRC-32 detects every such change, so every packet of one is refused under the other
+(unless their fingerprints collide, ~2^-32 per pair of codes); when both differ, a mismatch
+passes with probability ~2^-32 per pair of agreements.
 
 The message shape is agreed a priori (like the paper's C = 10 elements per link), so
 :func:`decode` takes it as an argument. The encoding is canonical (one packet per message): a
@@ -46,6 +62,8 @@ packet's size before anything is allocated.
 from __future__ import annotations
 
 import dataclasses
+import functools
+import hashlib
 import math
 import operator
 import zlib
@@ -148,6 +166,22 @@ class Code:
             raise ValueError(f"a remapped code's links have {len(self.remap)} elements")
         index = np.asarray(self.remap) if self.remap else m  # remap[k][m] for every m
         return (2 * np.floor(np.log2(index + 1))).astype(np.int32)
+
+    @functools.cached_property
+    def identity(self) -> bytes:
+        """The code's canonical bytes: name, levels and remap (layout: module docstring)."""
+        n = max(1, -(-int(self.levels).bit_length() // 8))
+        name = self.name.encode("ascii")
+        out = [bytes([len(name)]), name, bytes([n]), int(self.levels).to_bytes(n, "big")]
+        out.append(len(self.remap).to_bytes(4, "big"))
+        out.extend(int(x).to_bytes(n, "big") for row in self.remap for x in row)
+        return b"".join(out)
+
+    @functools.cached_property
+    def fingerprint(self) -> bytes:
+        """First 4 bytes of the SHA-256 of :attr:`identity`, in every packet's and frame's
+        implicit header (so a receiver with another code refuses the packet)."""
+        return hashlib.sha256(self.identity).digest()[:4]
 
     @property
     def fixed_width(self) -> int:
@@ -305,13 +339,15 @@ def encode(m, code: Code | FittedCode | str = "paper", *, crc: bool = True, prev
         bits = np.concatenate([present.astype(np.uint8), _write_bits(values, lengths)])
         body = np.packbits(bits).tobytes()
     if crc:
-        body += _crc(flat.size, body)
+        body += _crc(code, flat.size, body)
     return body
 
 
-def _crc(count: int, body: bytes) -> bytes:
-    """CRC-32 of the element count (4 bytes big-endian, agreed, not sent) and the body."""
-    return zlib.crc32(body, zlib.crc32(count.to_bytes(4, "big"))).to_bytes(CRC_BYTES, "big")
+def _crc(code: Code, count: int, body: bytes) -> bytes:
+    """CRC-32 of the implicit header (the element count, 4 bytes big-endian, then the code's
+    fingerprint; agreed, not sent) and the body."""
+    header = count.to_bytes(4, "big") + code.fingerprint
+    return zlib.crc32(body, zlib.crc32(header)).to_bytes(CRC_BYTES, "big")
 
 
 def _check_shape(shape) -> tuple[int, ...]:
@@ -362,7 +398,7 @@ def decode(
         if len(data) <= CRC_BYTES:
             raise PacketError(f"packet truncated: {len(data)} bytes, no room for its CRC-32")
         body, tail = data[:-CRC_BYTES], data[-CRC_BYTES:]
-        if _crc(count, body) != tail:
+        if _crc(code, count, body) != tail:
             raise PacketError("packet corrupted: CRC-32 mismatch")
     if count == 0:
         raise PacketError(f"a message of no elements is sent as no packet, got {len(data)} bytes")

@@ -21,10 +21,17 @@ null) and an integrity check of a configurable width. Format (exact):
 
   with no padding between links, then zero padding to a whole byte.
 * Then the **check**: the top ``check_bits`` bits (big-endian, ``check_bits // 8`` bytes) of
-  ``zlib.crc32`` over an implicit header, agreed and never sent (4-byte big-endian ``L``,
-  4-byte big-endian ``C``, 1 byte ``check_bits``: a receiver expecting another shape or width
-  gets a mismatch), followed by the body. ``check_bits`` is one of :data:`CHECK_BITS`; 0 means
-  no check (a baseline for ``benchmarks/frame_fuzz.py``, not for use).
+  ``zlib.crc32`` over an implicit header, agreed and never sent, followed by the body. The
+  implicit header is the code's 4-byte :attr:`~sparsecomm.channel.codes.Code.fingerprint` (the
+  SHA-256 of its identity: name, levels, remap; layout in :mod:`sparsecomm.channel.codes`),
+  4-byte big-endian ``L``, 4-byte big-endian ``C`` and 1 byte ``check_bits`` (13 bytes), so a
+  receiver agreed on another code, shape or width gets a mismatch instead of a wrong message.
+  ``check_bits`` is one of :data:`CHECK_BITS`; 0 means no check (a baseline for
+  ``benchmarks/frame_fuzz.py``, not for use). Under a 32-bit check, two agreements of the same
+  width that differ in one 4-byte field of the header (code, ``L`` or ``C``) disagree on the
+  check of every frame (a CRC-32 detects any change within 32 bits), and other mismatches pass
+  with probability ~2^-32; an 8- or 16-bit check, like any check of that width, passes a
+  mismatched frame that the canonical parse accepts with probability ~2^-check_bits.
 
 Frame bits: ``8 * ceil((L + sum over speaking links of (C + codeword bits)) / 8) + check_bits``,
 0 when silent. :func:`link_bits` gives each link's share of the body (0 if silent, else ``C`` +
@@ -221,12 +228,18 @@ def _codeword_bits(values: np.ndarray, lengths: np.ndarray) -> tuple[np.ndarray,
     return bits, sent.reshape(bits.shape)
 
 
-def _check(num_links: int, num_elements: int, check_bits: int, body: bytes) -> bytes:
+def _check(code: Code, num_links: int, num_elements: int, check_bits: int, body: bytes) -> bytes:
     """The frame's check: the top ``check_bits`` bits of the CRC-32 of the implicit header
-    (L, C: 4 bytes big-endian each; ``check_bits``: 1 byte) and the body."""
+    (the code's 4-byte fingerprint; L, C: 4 bytes big-endian each; ``check_bits``: 1 byte) and
+    the body."""
     if check_bits == 0:
         return b""
-    header = num_links.to_bytes(4, "big") + num_elements.to_bytes(4, "big") + bytes([check_bits])
+    header = (
+        code.fingerprint
+        + num_links.to_bytes(4, "big")
+        + num_elements.to_bytes(4, "big")
+        + bytes([check_bits])
+    )
     crc = zlib.crc32(body, zlib.crc32(header))
     return (crc >> (32 - check_bits)).to_bytes(check_bits // 8, "big")
 
@@ -272,7 +285,7 @@ def encode_frame(links, code: Code | str, *, check_bits: int = 32) -> bytes:
     keep = np.concatenate([np.ones(present.shape, bool), sent], axis=1)
     bits = np.concatenate([speaks.astype(np.uint8), blocks[keep]])
     body = np.packbits(bits).tobytes()
-    return body + _check(num_links, num_elements, check_bits, body)
+    return body + _check(code, num_links, num_elements, check_bits, body)
 
 
 def _check_count(value, name: str) -> int:
@@ -332,7 +345,7 @@ def decode_frame(
     if len(data) <= check_bytes:
         raise FrameError(f"frame truncated: {len(data)} bytes, no room for its body and check")
     body = data[: len(data) - check_bytes]
-    if _check(num_links, num_elements, check_bits, body) != data[len(body) :]:
+    if _check(code, num_links, num_elements, check_bits, body) != data[len(body) :]:
         raise FrameError(f"frame corrupted: {check_bits}-bit check mismatch")
     nbits = 8 * len(body)
     if num_links > nbits:
