@@ -22,6 +22,7 @@ import shutil
 from pathlib import Path
 
 import jax
+import numpy as np
 from flax import serialization
 
 from sparsecomm.errors import CheckpointError
@@ -93,13 +94,30 @@ def exists(folder: str | os.PathLike) -> bool:
     return _current(folder).exists()
 
 
+def meta_file(folder: str | os.PathLike) -> Path:
+    """The checkpoint's ``config.json`` (in ``folder``, or ``folder.old`` after an interrupted
+    save): the file a refusal of its metadata names."""
+    return _current(folder) / META
+
+
+def _read(folder: str | os.PathLike, name: str) -> tuple[Path, bytes]:
+    """The bytes of one checkpoint file; missing or unreadable (a folder in its place, no
+    permission, an I/O error: any ``OSError``) is a ``CheckpointError`` naming it."""
+    path = _current(folder) / name
+    try:
+        if not path.exists():
+            raise CheckpointError(f"checkpoint {folder} is incomplete: {path} is missing")
+        return path, path.read_bytes()
+    except OSError as e:
+        reason = e.strerror or type(e).__name__
+        raise CheckpointError(f"checkpoint file {path} cannot be read ({reason})") from None
+
+
 def load_meta(folder: str | os.PathLike) -> dict:
     """The JSON metadata of a checkpoint (``CheckpointError`` if missing or unreadable)."""
-    path = _current(folder) / META
-    if not path.exists():
-        raise CheckpointError(f"checkpoint {folder} is incomplete: {path} is missing")
+    path, data = _read(folder, META)
     try:
-        meta = json.loads(path.read_text())
+        meta = json.loads(data.decode())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise CheckpointError(f"checkpoint file {path} is damaged (not valid JSON: {e})") from None
     if not isinstance(meta, dict) or "state_sha256" not in meta or "meta_sha256" not in meta:
@@ -133,10 +151,7 @@ def load(folder: str | os.PathLike, template):
     """Restore a state saved by :func:`save` into the structure of ``template``, after checking
     the SHA-256 of ``state.msgpack`` against the one recorded at save time."""
     meta = load_meta(folder)
-    path = _current(folder) / STATE
-    if not path.exists():
-        raise CheckpointError(f"checkpoint {folder} is incomplete: {path} is missing")
-    data = path.read_bytes()
+    path, data = _read(folder, STATE)
     if hashlib.sha256(data).hexdigest() != meta["state_sha256"]:
         raise CheckpointError(
             f"checkpoint file {path} is damaged: its SHA-256 differs from the one recorded when "
@@ -147,6 +162,7 @@ def load(folder: str | os.PathLike, template):
         raw = serialization.from_state_dict(
             raw_template, _upgrade(serialization.msgpack_restore(data))
         )
+        _check_shapes(raw_template, raw, path)
         return jax.tree.map(
             lambda t, r: jax.random.wrap_key_data(r) if is_key(t) else jax.numpy.asarray(r),
             template,
@@ -156,3 +172,22 @@ def load(folder: str | os.PathLike, template):
         raise CheckpointError(
             f"checkpoint file {path} does not hold this run's state ({type(e).__name__}: {e})"
         ) from None
+
+
+def _check_shapes(template, raw, path: Path) -> None:
+    """Refuse arrays whose shapes are not the template's (``from_state_dict`` does not look):
+    a leading (run) axis of another length means that ``config.json``'s sweep (its seeds, lams
+    and budgets) is not the one the state was saved from."""
+    leaves = jax.tree_util.tree_leaves_with_path(template)
+    for (where, t), r in zip(leaves, jax.tree.leaves(raw), strict=True):
+        want, got = tuple(np.shape(t)), tuple(np.shape(r))
+        if want[:1] != got[:1]:
+            raise CheckpointError(
+                f"checkpoint file {path} holds {got[0] if got else 0} run(s), but {META}'s "
+                f"sweep (seeds x lams x budgets) has {want[0] if want else 0}"
+            )
+        if want != got:
+            raise CheckpointError(
+                f"checkpoint file {path} does not hold this run's state: "
+                f"{jax.tree_util.keystr(where)} has shape {got}, this run's is {want}"
+            )

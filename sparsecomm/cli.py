@@ -8,7 +8,9 @@ done in :mod:`sparsecomm.experiment`, :mod:`sparsecomm.codestats`, :mod:`sparsec
 
 from __future__ import annotations
 
+import dataclasses
 import sys
+import typing
 from pathlib import Path
 
 from sparsecomm.codestats import FitCode, fit_code
@@ -54,11 +56,31 @@ COMMANDS = {
 }
 
 
+def _refuse_empty_paths(argv: list[str]) -> None:
+    """Refuse an empty value for a path flag of the command (``--out ''``, ``--run=``): the
+    parser would read it as the current folder (``Path('')`` is ``.``)."""
+    if not argv or argv[0] not in COMMANDS:
+        return
+    cls = COMMANDS[argv[0]][0]
+    hints = typing.get_type_hints(cls)
+    paths = {
+        "--" + f.name.replace("_", "-"): f.name
+        for f in dataclasses.fields(cls)
+        if Path in (hints[f.name], *typing.get_args(hints[f.name]))
+    }
+    for i, arg in enumerate(argv[1:], 1):
+        flag, eq, value = arg.partition("=")
+        empty = value == "" if eq else i + 1 < len(argv) and argv[i + 1] == ""
+        if flag in paths and empty:
+            raise ValueError(f"{cls.__name__}.{paths[flag]} must be a path, got ''")
+
+
 def parse(argv: list[str]):
     """The command's arguments, checked: every config's ``__post_init__`` has run."""
     import tyro
 
     preset, argv = _take_preset(argv)
+    _refuse_empty_paths(argv)
     if preset is not None:  # ``sparsecomm train|imitate --preset NAME [--config.* ...]``
         command = argv[0] if argv else None
         if preset in PRESETS and command in COMMANDS and command not in PRESETS[preset]:

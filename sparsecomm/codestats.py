@@ -11,15 +11,26 @@ against those entropies; :func:`fit_code` (``sparsecomm fit-code``) fits a
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 
 import jax
 import numpy as np
 
 from sparsecomm import channel
-from sparsecomm.channel.fitted import FittedCode, fit, previous
+from sparsecomm.channel.fitted import MAX_GROUP, FittedCode, fit, previous
+from sparsecomm.configs import MAX_SEED
+from sparsecomm.errors import RunError
 from sparsecomm.rollout import rollout
-from sparsecomm.runfolder import at_least, check_index, load_run
+from sparsecomm.runfolder import (
+    at_least,
+    at_most,
+    check_index,
+    check_output,
+    default_output,
+    load_run,
+    read_config,
+)
 
 FIT_SEED_OFFSET = 2_000_003
 """Fitting episodes use ``config.seed + FIT_SEED_OFFSET + args.seed``: disjoint from training
@@ -38,17 +49,27 @@ class FitCode:
     """Episodes whose symbols the code is fitted to. ours: 2000 (on the small task ~60k
     non-silent link-steps; the code's bits on held-out episodes change by < 1% from 1000)."""
     seed: int = 0
-    """Seed of the fitting episodes (offset from the run's, so they are not training's)."""
+    """Seed of the fitting episodes (offset from the run's, so they are not training's), in
+    [0, :data:`~sparsecomm.configs.MAX_SEED`] (the PRNG's 32 bits)."""
     group: int = 5
-    """Elements per presence group (``FittedCode.group``). ours: 5 (2 groups of 32 patterns
-    for the paper's 10 elements; docs/channel.md compares 1, 2, 5 and 10)."""
+    """Elements per presence group (``FittedCode.group``), in [1, min(elements per message,
+    ``channel.fitted.MAX_GROUP`` = 8)]. ours: 5 (2 groups of 32 patterns for the paper's 10
+    elements; docs/channel.md compares 1, 2, 5 and 10)."""
     alpha: float = 0.5
-    """Smoothing count added to every cell (``FittedCode.alpha``). ours."""
+    """Smoothing count added to every cell (``FittedCode.alpha``), finite and > 0. ours."""
     out: Path | None = None
-    """JSON file to write (default: ``<run>/code.json``)."""
+    """JSON file to write, a writable file path, not a folder (default: ``<run>/code.json``)."""
 
     def __post_init__(self):
-        at_least(self, index=0, episodes=1, group=1)
+        at_least(self, index=0, episodes=1, group=1, seed=0)
+        at_most(self, "channel.fitted.MAX_GROUP", group=MAX_GROUP)
+        at_most(self, "configs.MAX_SEED: the PRNG keeps 32 bits", seed=MAX_SEED)
+        alpha = self.alpha
+        if isinstance(alpha, bool) or not isinstance(alpha, int | float):
+            raise ValueError(f"FitCode.alpha must be a finite number > 0, got {alpha!r}")
+        if not (math.isfinite(alpha) and alpha > 0):
+            raise ValueError(f"FitCode.alpha must be a finite number > 0, got {alpha!r}")
+        check_output(self, folder=False)
 
 
 def link_symbols(trainer, channel_cfg, params, key, episodes: int, batch: int = 512):
@@ -172,13 +193,19 @@ def measure(code: FittedCode, links: np.ndarray, valid: np.ndarray, levels: int)
 
 def fit_code(args: FitCode) -> Path:
     """Fit a code to run ``args.index`` of ``args.run`` and write it (``sparsecomm fit-code``)."""
+    out = default_output(args, Path(args.run) / "code.json")
+    elements = read_config(args.run).channel.num_elements  # metadata only, before any work
+    if args.group > elements:
+        raise RunError(
+            f"FitCode.group must be in [1, {min(elements, MAX_GROUP)}] (a run of {elements} "
+            f"elements per message), got {args.group}"
+        )
     config, trainer, runs, actor = load_run(args.run)
     check_index(args, runs)
     params = jax.tree.map(lambda x: x[args.index], actor)
     key = jax.random.key(config.seed + FIT_SEED_OFFSET + args.seed)
     links, valid = link_symbols(trainer, config.channel, params, key, args.episodes)
     code = fit(links, valid, levels=config.channel.levels, group=args.group, alpha=args.alpha)
-    out = args.out or Path(args.run) / "code.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(code.to_json())
     busy = valid & (links != 0).any(-1)

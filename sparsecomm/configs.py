@@ -13,6 +13,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import types
+import typing
 
 import optax
 
@@ -21,9 +23,27 @@ from sparsecomm.channel import GATES, ChannelConfig
 from sparsecomm.envs.navigation import NavConfig
 from sparsecomm.scaling import check_agent_fields, check_fits
 
+MAX_UPDATES = 10_000_000
+"""Most gradient updates a run may ask for (``num_updates``): a bound that still allows any
+realistic run (6,700 times the ``paper`` preset's 1500 updates; about a month at the ``small``
+preset's ~4 updates per second on 2 CPU cores) while refusing a number such as 10^23 that would
+train forever; it also keeps the train state's int32 update counter (``LearnerState.update``),
+and optax's step count with PPO's several steps per update, far from overflowing."""
+
+MAX_SEED = 2**30 - 1
+"""Largest seed (``LearnerConfig.seed``, ``sparsecomm render --seed``, ``fit-code --seed``).
+``jax.random.key`` keeps only the low 32 bits of a seed (jax without x64: 2^32 gives the same
+key as 0, and 2^64 is an ``OverflowError``), so every seed derived from these, such as
+``config.seed + EVAL_SEED_OFFSET + run`` or ``config.seed + FIT_SEED_OFFSET + seed``, must stay
+below 2^32 to be distinct: two seeds below 2^30 and an offset below 2^30 always do."""
+
 
 def _bad(owner: str, name: str, value, allowed: str) -> ValueError:
     return ValueError(f"{owner}.{name} must be {allowed}, got {value!r}")
+
+
+def _integer(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def _check_finite(config) -> None:
@@ -111,7 +131,8 @@ class LearnerConfig:
     """Episodes of ``env.max_steps`` steps collected per update (>= 1). ours: 256 for RL
     (docs/tuning.md; SPEC calibration: 64); ``ILConfig`` sets its own."""
     num_updates: int = 1000
-    """Number of gradient updates (>= 0). ours; ``ILConfig`` sets its own."""
+    """Number of gradient updates, in [0, :data:`MAX_UPDATES`] (its docstring says why). ours;
+    ``ILConfig`` sets its own."""
     lr: float = 1e-3
     """Adam learning rate (> 0). ours: 1e-3 (docs/tuning.md; SPEC calibration: 3e-4)."""
     lr_final: float | None = None
@@ -128,13 +149,21 @@ class LearnerConfig:
     """Rematerialise each step of the episode in the backward pass (``jax.checkpoint``): less
     memory, more compute. ours."""
     seed: int = 0
-    """Base PRNG seed; seed s of a sweep uses ``seed + s``."""
+    """Base PRNG seed, an integer in [0, :data:`MAX_SEED`] (the PRNG's 32 bits, its docstring
+    says why); seed s of a sweep uses ``seed + s``. ours: 0."""
 
     def _checks(self) -> dict[str, tuple[bool, str]]:
         """Each field's rule, ``name -> (holds, the rule in words)``; a learner adds its own."""
         return {
             "num_envs": (self.num_envs >= 1, ">= 1"),
-            "num_updates": (self.num_updates >= 0, ">= 0"),
+            "num_updates": (
+                _integer(self.num_updates) and 0 <= self.num_updates <= MAX_UPDATES,
+                f"an integer in [0, {MAX_UPDATES}] (configs.MAX_UPDATES)",
+            ),
+            "seed": (
+                _integer(self.seed) and 0 <= self.seed <= MAX_SEED,
+                f"an integer in [0, {MAX_SEED}] (configs.MAX_SEED: the PRNG keeps 32 bits)",
+            ),
             "lr": (self.lr > 0, "> 0"),
             "max_grad_norm": (self.max_grad_norm > 0, "> 0"),
             "lr_final": (self.lr_final is None or self.lr_final > 0, "None or > 0"),
@@ -247,10 +276,33 @@ def to_dict(config) -> dict:
     return dataclasses.asdict(config)
 
 
-def from_dict(cls, data: dict):
-    """Rebuild a (nested) config dataclass from :func:`to_dict` output; unknown keys raise."""
-    import typing
+def _of_type(value, hint) -> bool:
+    """``value`` (read from JSON) has the simple type ``hint`` (``bool``, ``int``, ``float``,
+    ``str``, ``tuple[...]``, ``X | None``); other hints are left to the config's own checks."""
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        return any(_of_type(value, a) for a in typing.get_args(hint))
+    if origin is tuple or hint is tuple:
+        return isinstance(value, tuple)
+    if hint is type(None):
+        return value is None
+    if hint is bool:
+        return isinstance(value, bool)
+    if hint is int:
+        return _integer(value)
+    if hint is float:
+        return isinstance(value, int | float) and not isinstance(value, bool)
+    if hint is str:
+        return isinstance(value, str)
+    return True
 
+
+def from_dict(cls, data: dict):
+    """Rebuild a (nested) config dataclass from :func:`to_dict` output (e.g. a checkpoint's
+    ``config.json``): unknown keys, and a value of the wrong type (a string for an integer), raise
+    ``ValueError`` naming the field; then the config checks its own fields."""
+    if not isinstance(data, dict):
+        raise ValueError(f"{cls.__name__} must be a JSON object of its fields, got {data!r}")
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = set(data) - names
@@ -259,10 +311,15 @@ def from_dict(cls, data: dict):
     kwargs = {}
     for name, value in data.items():
         hint = hints[name]
-        if dataclasses.is_dataclass(hint) and isinstance(value, dict):
+        if dataclasses.is_dataclass(hint):
+            if not isinstance(value, dict):
+                raise _bad(cls.__name__, name, value, f"a {hint.__name__} (a JSON object)")
             value = from_dict(hint, value)
-        elif isinstance(value, list):
+        elif isinstance(value, list):  # JSON's arrays are the configs' tuples
             value = tuple(value)
+        if not _of_type(value, hint):
+            allowed = getattr(hint, "__name__", None) or str(hint)
+            raise _bad(cls.__name__, name, value, f"of type {allowed}")
         kwargs[name] = value
     return cls(**kwargs)
 
@@ -282,7 +339,7 @@ class ILConfig(LearnerConfig):
     num_envs: int = 64
     """Episodes of ``env.max_steps`` steps collected per update (>= 1). ours."""
     num_updates: int = 500
-    """Number of gradient updates (>= 0). ours."""
+    """Number of gradient updates, in [0, :data:`MAX_UPDATES`]. ours."""
     expert: str = "oracle"
     """``oracle``: the centralised scripted controller that sees every goal and sends nothing
     (the paper's "communication-free expert"). ``checkpoint``: a team trained by

@@ -18,8 +18,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from sparsecomm.channel import NoiseConfig
-from sparsecomm.configs import ILConfig, RLConfig, check_budget_fits
+from sparsecomm.configs import MAX_SEED, ILConfig, RLConfig, check_budget_fits
 from sparsecomm.envs.render import render_frames, write_gif
+from sparsecomm.errors import RunError
 from sparsecomm.jsonfile import write_json
 from sparsecomm.memory import check_fits
 from sparsecomm.rollout import rollout
@@ -28,7 +29,10 @@ from sparsecomm.runfolder import (
     PRETRAINED,
     RESULTS,
     at_least,
+    at_most,
     check_index,
+    check_output,
+    default_output,
     kind_of,
     learner_for,
     load_params,
@@ -46,6 +50,11 @@ from sparsecomm.sharding import (
 )
 from sparsecomm.stats import bootstrap_ci, plot_curves
 from sparsecomm.sweep import SweepSpec, run_sweep
+
+MAX_FPS = 50
+"""Most frames per second of a GIF (``sparsecomm render --fps``). A GIF stores each frame's
+delay in whole centiseconds, and browsers show a delay under 2 cs (0 or 1: more than 50 fps) as
+10 cs, so a faster GIF would play slower, and one over 100 fps would store a delay of 0."""
 
 
 @dataclasses.dataclass
@@ -65,7 +74,9 @@ class Train:
     program with the lambdas and seeds (``None``: fixed-lambda runs beside them); empty (the
     default): ``config.budget.bits`` alone."""
     out: Path = Path("runs/train")
-    """Output folder: metrics.csv, tensorboard/, checkpoint/, results.json, curves.png, team.gif."""
+    """Output folder: metrics.csv, tensorboard/, checkpoint/, results.json, curves.png, team.gif
+    (a folder this user can write, or a path where one can be created: checked as the command
+    starts)."""
     chunk: int = 10
     """Updates per compiled call: the logging and progress granularity."""
     checkpoint_every: int = 5
@@ -118,8 +129,8 @@ class Eval:
     greedy: bool = False
     """Take the most probable action instead of sampling."""
     out: Path | None = None
-    """JSON file to write (default: ``<run>/eval.json``; ``runs/pretrained/eval.json`` for the
-    shipped team)."""
+    """JSON file to write, a writable file path, not a folder (default: ``<run>/eval.json``;
+    ``runs/pretrained/eval.json`` for the shipped team)."""
     own_noise: bool = True
     """Evaluate under the channel noise the run was trained with; ``--no-own-noise``: under
     ``--noise.*`` instead (clean unless given)."""
@@ -129,6 +140,7 @@ class Eval:
 
     def __post_init__(self):
         at_least(self, episodes=1)
+        check_output(self, folder=False)
 
 
 @dataclasses.dataclass
@@ -141,14 +153,19 @@ class Render:
     index: int = 0
     """Which run of the sweep (lambda-major, then seed)."""
     seed: int = 0
-    """Episode seed."""
+    """Episode seed, in [0, :data:`~sparsecomm.configs.MAX_SEED`] (the PRNG's 32 bits)."""
     out: Path | None = None
-    """GIF path (default: ``<run>/team.gif``; ``runs/pretrained/team.gif`` for the shipped team)."""
+    """GIF path, a writable file path, not a folder (default: ``<run>/team.gif``;
+    ``runs/pretrained/team.gif`` for the shipped team)."""
     fps: int = 12
-    """Frames per second."""
+    """Frames per second, in [1, :data:`MAX_FPS`] (the GIF's centisecond delays, its docstring
+    says why). ours: 12."""
 
     def __post_init__(self):
-        at_least(self, index=0, fps=1)
+        at_least(self, index=0, fps=1, seed=0)
+        at_most(self, "experiment.MAX_FPS: a GIF's delay is >= 2 centiseconds", fps=MAX_FPS)
+        at_most(self, "configs.MAX_SEED: the PRNG keeps 32 bits", seed=MAX_SEED)
+        check_output(self, folder=False)
 
 
 @dataclasses.dataclass
@@ -158,7 +175,8 @@ class Export:
     run: Path
     """Folder of a ``sparsecomm train``/``imitate`` run."""
     out: Path
-    """Folder to write ``team.json`` and ``actor.msgpack`` to."""
+    """Folder to write ``team.json`` and ``actor.msgpack`` to (a folder this user can write, or a
+    path where one can be created)."""
     index: int = 0
     """Which run of the sweep (lambda-major, then budget, then seed)."""
     note: str = ""
@@ -166,6 +184,7 @@ class Export:
 
     def __post_init__(self):
         at_least(self, index=0)
+        check_output(self, folder=True)
 
 
 def export_team(args: Export) -> Path:
@@ -226,6 +245,8 @@ def render_run(trainer, actor_params, seed: int, out: Path, fps: int = 12) -> Pa
 
 def train(args: Train) -> dict:
     """Run ``sparsecomm train`` or ``sparsecomm imitate`` (by the type of ``args``)."""
+    # Here, not in __post_init__: a preset's default --out is built before the flags replace it.
+    check_output(args, folder=True, error=RunError)
     args.distributed.initialize()
     cfg = args.config
     kind = kind_of(cfg)
@@ -293,12 +314,12 @@ def _run_and_outputs(run: Path | None) -> tuple[Path, Path]:
 
 def evaluate(args: Eval) -> dict:
     run, outputs = _run_and_outputs(args.run)
+    out = default_output(args, outputs / "eval.json")
     config, trainer, runs, actor = load_run(run)
     if not args.own_noise:
         channel = dataclasses.replace(config.channel, noise=args.noise)
         trainer = learner_for(dataclasses.replace(config, channel=channel))
     results = evaluate_runs(trainer, runs, actor, args.episodes, args.greedy)
-    out = args.out or outputs / "eval.json"
     out.parent.mkdir(parents=True, exist_ok=True)
     write_json(out, results)
     print(json.dumps(results["by_group"], indent=2))
@@ -308,10 +329,10 @@ def evaluate(args: Eval) -> dict:
 
 def render(args: Render) -> Path:
     run, outputs = _run_and_outputs(args.run)
+    out = default_output(args, outputs / "team.gif")
     _, trainer, runs, actor = load_run(run)
     check_index(args, runs)
     params = jax.tree.map(lambda x: x[args.index], actor)
-    out = args.out or outputs / "team.gif"
     out.parent.mkdir(parents=True, exist_ok=True)
     out = render_run(trainer, params, args.seed, out, args.fps)
     print(f"-> {out}")

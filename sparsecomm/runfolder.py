@@ -19,6 +19,7 @@ Everything that takes a folder takes either. Nothing here unpickles: msgpack and
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import NamedTuple
 
@@ -30,14 +31,21 @@ from flax import serialization
 from sparsecomm import checkpoint
 from sparsecomm.configs import ILConfig, RLConfig, from_dict, to_dict
 from sparsecomm.envs.navigation import NavigationEnv
-from sparsecomm.errors import RunError
+from sparsecomm.errors import CheckpointError, RunError
 from sparsecomm.imitation import make_imitate, oracle_expert, team_expert
 from sparsecomm.jsonfile import write_json
 from sparsecomm.learner import Learner, make_team
 from sparsecomm.rl import make_train
 from sparsecomm.rollout import Expert
 from sparsecomm.sharding import to_host
-from sparsecomm.sweep import Run, run_arrays, spec_from_meta
+from sparsecomm.sweep import (
+    Run,
+    SweepSpec,
+    differences,
+    run_arrays,
+    spec_from_meta,
+    sweep_record,
+)
 
 CHECKPOINT = "checkpoint"
 """A run folder's checkpoint folder."""
@@ -74,6 +82,66 @@ def at_least(args, **lowest) -> None:
             raise ValueError(
                 f"{type(args).__name__}.{name} must be an integer >= {low}, got {value!r}"
             )
+
+
+def at_most(args, why: str = "", **highest) -> None:
+    """Refuse an integer field of ``args`` above its highest allowed value, naming the field
+    (``why``: where the bound comes from, e.g. the constant that documents it)."""
+    for name, high in highest.items():
+        value = getattr(args, name)
+        if isinstance(value, bool) or not isinstance(value, int) or value > high:
+            because = f" ({why})" if why else ""
+            raise ValueError(
+                f"{type(args).__name__}.{name} must be an integer <= {high}{because}, got {value!r}"
+            )
+
+
+def output_problem(path: Path, folder: bool) -> str | None:
+    """Why ``path`` cannot be written as an output folder (``folder``) or file, or None: it is
+    a file where a folder is wanted or the other way round, it is not writable, or it cannot be
+    created (its nearest existing parent is a file, or not writable). Looks only; writes
+    nothing."""
+    path = Path(path)
+    want = "a folder" if folder else "a file"
+    if path.exists():
+        if path.is_dir() != folder:
+            return f"must be {want} to write, and {path} is {'a file' if folder else 'a folder'}"
+        if not os.access(path, os.W_OK | (os.X_OK if folder else 0)):
+            return f"must be {want} this user can write, and {path} is not writable"
+        return None
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        return f"cannot be created: {parent} is a file, not a folder"
+    if not os.access(parent, os.W_OK | os.X_OK):
+        return f"cannot be created: the folder {parent} is not writable"
+    return None
+
+
+def check_output(args, name: str = "out", *, folder: bool, error=ValueError) -> None:
+    """Refuse the output path ``args.<name>`` (None: the default, checked where it is made)
+    unless :func:`output_problem` finds none, naming the field: a ``ValueError`` from a
+    ``__post_init__``, so the command line refuses it while parsing, or ``error=RunError`` as
+    the first step of a command."""
+    path = getattr(args, name)
+    if path is None:
+        return
+    problem = output_problem(Path(path), folder)
+    if problem:
+        raise error(f"{type(args).__name__}.{name} {problem}, got {str(path)!r}")
+
+
+def default_output(args, path: Path, name: str = "out") -> Path:
+    """``args.<name>``, or the default ``path`` (a file) checked as :func:`check_output` checks
+    the field, refused with a ``RunError`` naming the field."""
+    given = getattr(args, name)
+    if given is not None:
+        return Path(given)
+    problem = output_problem(path, folder=False)
+    if problem:
+        raise RunError(f"{type(args).__name__}.{name} (default: {path}) {problem}")
+    return path
 
 
 def check_index(args, runs: list) -> None:
@@ -130,21 +198,50 @@ def _team_meta(folder: Path) -> dict:
     return json.loads((folder / TEAM).read_text())
 
 
+def read_meta(folder: str | Path) -> tuple[RLConfig | ILConfig, SweepSpec]:
+    """The config and the sweep a run folder's checkpoint records, checked as a resume checks
+    them (:func:`sparsecomm.sweep.differences`): the kind, config and axes it records must be
+    the ones rebuilt from them, so a value of the wrong type, a missing field, a NaN or any other
+    value the config refuses is a ``CheckpointError`` naming the field and ``config.json``,
+    before anything is built from it. Reading the file's bytes is :func:`checkpoint.load_meta`'s
+    (a digest mismatch, an unreadable file)."""
+    ckpt = Path(folder) / CHECKPOINT
+    meta = checkpoint.load_meta(ckpt)
+    where = checkpoint.meta_file(ckpt)
+    try:
+        config = _config(meta, where)
+        spec = spec_from_meta(meta)
+        record = sweep_record(meta["kind"], config, spec, meta.get("start_from", ""))
+    except KeyError as e:
+        raise CheckpointError(f"checkpoint file {where} has no field {e}") from None
+    except (ValueError, TypeError) as e:
+        raise CheckpointError(f"checkpoint file {where} does not hold a valid run: {e}") from None
+    diffs = differences(meta, record, may_change=(), now="read back")
+    if diffs:
+        raise CheckpointError(
+            f"checkpoint file {where} does not hold a valid run (a field missing or not the "
+            "one its config reads back): " + "; ".join(diffs)
+        )
+    return config, spec
+
+
 def runs_of(folder: str | Path) -> list[Run]:
     """The runs of a run folder or exported team, in the order of the run axis, read from its
     metadata alone."""
     folder = Path(folder)
     if is_team(folder):
         return [Run(**_team_meta(folder)["run"])]
-    return spec_from_meta(checkpoint.load_meta(folder / CHECKPOINT)).runs()
+    return read_meta(folder)[1].runs()
 
 
 def read_config(folder: str | Path) -> RLConfig | ILConfig:
     """The config of a run folder or exported team, read from its metadata alone."""
     folder = Path(folder)
+    if not folder.is_dir():
+        raise RunError(f"no run folder at {folder}")
     if is_team(folder):
         return _config(_team_meta(folder), folder / TEAM)
-    return _config(checkpoint.load_meta(folder / CHECKPOINT), folder)
+    return read_meta(folder)[0]
 
 
 class ExportedTeam(NamedTuple):
@@ -235,10 +332,9 @@ def _load(folder: str | Path):
         actor = serialization.from_state_dict(template, loaded.actor)
         actor = jax.tree.map(lambda x: jnp.asarray(x)[None], actor)
         return loaded.config, trainer, [loaded.run], {"actor": actor}
-    meta = checkpoint.load_meta(folder / CHECKPOINT)
-    config = _config(meta, folder)
+    config, spec = read_meta(folder)
     trainer = learner_for(config)
-    runs = spec_from_meta(meta).runs()
+    runs = spec.runs()
     template = jax.vmap(trainer.init)(*run_arrays(config, runs))
     state = checkpoint.load(folder / CHECKPOINT, template)
     return config, trainer, runs, state.params

@@ -14,6 +14,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import functools
+import json
 import math
 import os
 import time
@@ -326,14 +327,9 @@ def run_sweep(
             params = _start_from(state.params, start_params, start_from)
             state = state.replace(params=params, opt_state=jax.vmap(learner.tx.init)(params))
     meta = {
-        "kind": kind,
-        "config": to_dict(config),
-        "seeds": spec.seeds,
-        "lams": list(spec.lams),
-        "budgets": list(spec.budgets),
+        **sweep_record(kind, config, spec, start_from),
         "num_updates": num_updates,
         "chunk": chunk,
-        "start_from": start_from,
     }
     ckpt = out / "checkpoint"
     primary = is_primary()  # writes the logs and checkpoints
@@ -411,24 +407,67 @@ run itself must match; how it is driven (``--chunk``, ``--checkpoint-every``, ``
 ``--tensorboard``, ``--eval-episodes``) is not part of the checkpoint and may change freely."""
 
 
-def _differences(old, new, path: str = "") -> list[str]:
+def sweep_record(kind: str, config, spec: SweepSpec, start_from: str = "") -> dict:
+    """What a checkpoint's metadata records of the run itself (:func:`run_sweep` writes it and
+    :func:`check_resumable` compares it): the kind, the config and the sweep's axes, as JSON
+    reads them back (lists, not tuples)."""
+    record = {
+        "kind": kind,
+        "config": to_dict(config),
+        "seeds": spec.seeds,
+        "lams": list(spec.lams),
+        "budgets": list(spec.budgets),
+        "start_from": start_from,
+    }
+    return json.loads(json.dumps(record))
+
+
+def _differences(old, new, path: str = "", now: str = "now") -> list[str]:
     if isinstance(old, dict) and isinstance(new, dict):
         out = []
         for k in sorted(set(old) | set(new), key=str):
-            out += _differences(old.get(k), new.get(k), f"{path}.{k}" if path else str(k))
+            where = f"{path}.{k}" if path else str(k)
+            out += _differences(old.get(k, _MISSING), new.get(k, _MISSING), where, now)
         return out
-    return [] if old == new else [f"{path} (checkpoint: {old!r}, now: {new!r})"]
+    return [] if _same(old, new) else [f"{path} (checkpoint: {old!r}, {now}: {new!r})"]
+
+
+def _same(old, new) -> bool:
+    """One JSON value: 1 and 1.0 are one number, NaN is none, "4" is not 4, nor true 1."""
+    if all(isinstance(x, int | float) and not isinstance(x, bool) for x in (old, new)):
+        return old == new
+    return type(old) is type(new) and old == new
+
+
+class _Missing:
+    def __repr__(self) -> str:
+        return "missing"
+
+
+_MISSING = _Missing()
+_RECORD_DEFAULTS = {"budgets": [None], "start_from": ""}
+"""Fields of a :func:`sweep_record` that older checkpoints lack, and what their absence means
+(as :func:`spec_from_meta` reads it)."""
+
+
+def differences(old: dict, new: dict, may_change=RESUME_MAY_CHANGE, now: str = "now") -> list:
+    """Every field of the run where the checkpoint's metadata ``old`` differs from ``new`` (a
+    :func:`sweep_record`), ``config`` fields in ``may_change`` aside, each with both values."""
+    config = old.get("config", {})
+    if not isinstance(config, dict):
+        return [f"config (checkpoint: {config!r}, {now}: an object of the config's fields)"]
+    old_cfg = {k: v for k, v in config.items() if k not in may_change}
+    new_cfg = {k: v for k, v in new["config"].items() if k not in may_change}
+    diffs = _differences(old_cfg, new_cfg, "config", now)
+    for field in ("kind", "seeds", "lams", "budgets", "start_from"):
+        default = _RECORD_DEFAULTS.get(field, _MISSING)
+        diffs += _differences(old.get(field, default), new[field], field, now)
+    return diffs
 
 
 def check_resumable(old: dict, meta: dict, ckpt: Path) -> None:
     """Refuse to resume a checkpoint of another run, naming every field that differs."""
-    old_cfg = {k: v for k, v in old.get("config", {}).items() if k not in RESUME_MAY_CHANGE}
-    new_cfg = {k: v for k, v in meta["config"].items() if k not in RESUME_MAY_CHANGE}
-    diffs = _differences(old_cfg, new_cfg, "config")
-    for field in ("kind", "seeds", "lams", "budgets", "start_from"):
-        diffs += _differences(
-            old.get(field, "" if field == "start_from" else None), meta[field], field
-        )
+    diffs = differences(old, meta)
     if diffs:
         raise CheckpointError(
             f"cannot resume from {ckpt}: this run differs in "

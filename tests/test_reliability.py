@@ -4,6 +4,7 @@ logs that hold each update once across kills and resumes."""
 
 import json
 import os
+import shutil
 import signal
 import struct
 import subprocess
@@ -62,10 +63,72 @@ def _refused(argv, capsys, field):
         (["train", "--config.budget.bits", "-1"], "BudgetConfig.bits"),
         (["train", "--preset", "nope"], "--preset"),
         (["eval", "--preset", "small"], "--preset"),
+        # Upper bounds (configs.MAX_UPDATES, configs.MAX_SEED, experiment.MAX_FPS).
+        (["train", "--config.num-updates", str(10**23)], "RLConfig.num_updates"),
+        (["train", "--config.num-updates", "10000001"], "RLConfig.num_updates"),
+        (["train", "--config.seed", str(2**70)], "RLConfig.seed"),
+        (["imitate", "--config.seed", "-1"], "ILConfig.seed"),
+        (["render", "--fps", "100000"], "Render.fps"),
+        (["render", "--seed", str(2**40)], "Render.seed"),
+        # fit-code's own fields, before any rollout.
+        (["fit-code", "--run", "nothing", "--group", "11"], "FitCode.group"),
+        (["fit-code", "--run", "nothing", "--alpha", "-1"], "FitCode.alpha"),
+        (["fit-code", "--run", "nothing", "--alpha", "nan"], "FitCode.alpha"),
+        (["fit-code", "--run", "nothing", "--seed", "-1"], "FitCode.seed"),
+        # deploy binds its sockets on this machine: an address literal of it, or a name.
+        (["deploy", "--host", "999.1.1.1"], "Deploy.host"),
+        (["deploy", "--host", "192.0.2.1"], "Deploy.host"),  # TEST-NET-1: not this machine
+        # An empty path is not the current folder.
+        (["train", "--out", ""], "Train.out"),
+        (["imitate", "--out="], "Imitate.out"),
+        (["eval", "--out", ""], "Eval.out"),
+        (["export", "--run", "nothing", "--out", ""], "Export.out"),
+        (["render", "--run", ""], "Render.run"),
     ],
 )
-def test_bad_input_is_refused_before_any_work(argv, field, capsys):
-    _refused(argv, capsys, field)
+def test_bad_input_is_refused_before_any_work(argv, field, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    err = _refused(argv, capsys, field)
+    assert err.startswith("sparsecomm: error:") or "Error parsing" in err
+    assert list(tmp_path.iterdir()) == []  # nothing written
+
+
+def _read_only_folder(tmp_path: Path) -> Path:
+    """A folder this process cannot write: a chmod'ed one, or (as root, whom modes do not
+    stop) /proc/1."""
+    folder = tmp_path / "read-only"
+    folder.mkdir()
+    folder.chmod(0o555)
+    if os.access(folder, os.W_OK):
+        folder = Path("/proc/1")
+    if os.access(folder, os.W_OK):
+        pytest.skip("no folder here is read-only to this process")
+    return folder
+
+
+def test_outputs_that_cannot_be_written_are_refused_before_any_work(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "file").write_text("kept")
+    (tmp_path / "folder").mkdir()
+    locked = _read_only_folder(tmp_path)
+    cases = [
+        (["train", *TINY, "--out", "file"], "Train.out must be a folder"),
+        (["imitate", *TINY, "--out", "file"], "Imitate.out must be a folder"),
+        (["train", *TINY, "--out", "file/run"], "Train.out cannot be created: file is a file"),
+        (["train", *TINY, "--out", str(locked / "run")], "Train.out cannot be created"),
+        (["export", "--run", "nothing", "--out", "file"], "Export.out must be a folder"),
+        (["export", "--run", "x", "--out", str(locked / "t")], "Export.out cannot be created"),
+        (["eval", "--out", "folder"], "Eval.out must be a file"),
+        (["eval", "--out", str(locked / "eval.json")], "Eval.out cannot be created"),
+        (["render", "--out", "folder"], "Render.out must be a file"),
+        (["render", "--out", "file/team.gif"], "Render.out cannot be created"),
+        (["fit-code", "--run", "nothing", "--out", "folder"], "FitCode.out must be a file"),
+    ]
+    before = sorted(p.name for p in tmp_path.iterdir())
+    for argv, message in cases:
+        _refused(argv, capsys, message)
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # nothing written
+    assert (tmp_path / "file").read_text() == "kept" and not any((tmp_path / "folder").iterdir())
 
 
 @pytest.mark.parametrize(
@@ -172,6 +235,79 @@ def test_checkpoint_round_trip_and_every_damage_is_named(saved, tmp_path):
     assert (edited / "config.json").read_text() != text
     with pytest.raises(CheckpointError, match="config.json is damaged"):
         checkpoint.load(edited, state)
+
+
+def _edited(run: Path, dst: Path, edit) -> Path:
+    """A copy of the run folder ``run`` whose ``config.json`` was edited by ``edit(meta)`` and
+    its digest recomputed: consistent, so only its values can tell."""
+    shutil.copytree(run, dst)
+    path = dst / "checkpoint" / "config.json"
+    meta = json.loads(path.read_text())
+    edit(meta)
+    meta["meta_sha256"] = checkpoint._meta_digest(meta)
+    path.write_text(json.dumps(meta))
+    return dst
+
+
+EDITS = {
+    "nan": (lambda m: m["config"].update(gamma=float("nan")), "RLConfig.gamma must be finite"),
+    "missing key": (lambda m: m["config"].pop("gamma"), "config.gamma (checkpoint: missing"),
+    "string for an integer": (
+        lambda m: m["config"].update(num_envs="4"),
+        "RLConfig.num_envs must be of type int, got '4'",
+    ),
+    "string seed": (lambda m: m["config"].update(seed="0"), "RLConfig.seed must be of type int"),
+    "another number of seeds": (lambda m: m.update(seeds=3), "holds 2 run(s), but config.json"),
+    "no seeds": (lambda m: m.pop("seeds"), "config.json has no field 'seeds'"),
+    "not an object": (lambda m: m["config"].update(env=5), "RLConfig.env must be a NavConfig"),
+}
+
+
+@pytest.mark.parametrize("edit", list(EDITS))
+def test_every_reader_refuses_an_edited_config_json_naming_the_field(saved, edit, tmp_path, capsys):
+    change, message = EDITS[edit]
+    run = _edited(saved[0].parent, tmp_path / "run", change)
+    files = sorted(p.relative_to(run) for p in run.rglob("*"))
+    commands = [
+        ["eval", "--run", str(run), "--episodes", "2"],
+        ["render", "--run", str(run)],
+        ["export", "--run", str(run), "--out", str(tmp_path / "team")],
+        ["fit-code", "--run", str(run), "--episodes", "2"],
+    ]
+    for argv in commands if edit == "nan" else commands[:1]:  # each reader once, eval each edit
+        err = _refused(argv, capsys, message)
+        assert "config.json" in err or "state.msgpack" in err, err
+    assert sorted(p.relative_to(run) for p in run.rglob("*")) == files  # nothing written
+    assert not (tmp_path / "team").exists()
+
+
+@pytest.mark.parametrize("part", ["state.msgpack", "config.json"])
+def test_a_checkpoint_file_that_cannot_be_read_is_named_by_eval_and_resume(
+    saved, part, tmp_path, capsys, fast_compile
+):
+    run = tmp_path / "run"
+    shutil.copytree(saved[0].parent, run)
+    (run / "checkpoint" / part).unlink()
+    (run / "checkpoint" / part).mkdir()  # a folder where the file should be: an OSError
+    message = f"checkpoint file {run / 'checkpoint' / part} cannot be read (Is a directory)"
+    before = sorted(p.relative_to(run) for p in run.rglob("*"))
+    _refused(["eval", "--run", str(run), "--episodes", "2"], capsys, message)
+    # The resume of the same run (TINY is CFG's task and episodes; two seeds) refuses it too.
+    _refused(["train", *TINY, "--seeds", "2", "--out", str(run)], capsys, message)
+    assert sorted(p.relative_to(run) for p in run.rglob("*")) == before  # nothing written
+
+
+def test_a_default_output_that_is_a_folder_is_refused_before_any_work(saved, tmp_path, capsys):
+    run = tmp_path / "run"
+    shutil.copytree(saved[0].parent, run)
+    for name, argv in [
+        ("eval.json", ["eval", "--run", str(run)]),
+        ("team.gif", ["render", "--run", str(run)]),
+        ("code.json", ["fit-code", "--run", str(run)]),
+    ]:
+        (run / name).mkdir()
+        _refused(argv, capsys, f"(default: {run / name}) must be a file to write")
+        assert not any((run / name).iterdir())
 
 
 def test_a_save_killed_between_its_renames_leaves_the_previous_checkpoint(saved, tmp_path):

@@ -4,6 +4,8 @@ command itself is :func:`sparsecomm.deploy.launcher.deploy`."""
 from __future__ import annotations
 
 import dataclasses
+import ipaddress
+import socket
 from pathlib import Path
 
 from sparsecomm.deploy.faults import Deadlines, Faults
@@ -71,8 +73,10 @@ class Deploy:
     """Seconds the world waits for every agent's first hello (``Deadlines.startup``). ours:
     120 (several processes import JAX and compile at once)."""
     host: str = "127.0.0.1"
-    """Interface the processes listen on (free UDP ports are picked on it). ours: loopback.
-    For agents on separate hosts start the processes by hand (docs/deploy.md)."""
+    """Interface the processes listen on (free UDP ports are picked on it): an IPv4 address of
+    this machine (``127.0.0.1``, or one of its interfaces' addresses) or a name that resolves to
+    one, checked by binding a UDP socket there. ours: loopback. For agents on separate hosts
+    start the processes by hand (docs/deploy.md)."""
     reference: bool = True
     """Also play the same episodes in simulation (the run's ``sparsecomm eval`` draws, with
     ``loss`` as the simulator's packet erasure) and report them side by side, with the count of
@@ -93,8 +97,7 @@ class Deploy:
             )
         if self.run is not None and not Path(self.run).is_dir():
             raise ValueError(f"Deploy.run must be a run folder, got {str(self.run)!r} (missing)")
-        if not isinstance(self.host, str) or not self.host:
-            raise ValueError(f"Deploy.host must be a host name or address, got {self.host!r}")
+        _check_host(self.host)
         try:
             self.faults()
             self.deadlines()
@@ -120,6 +123,40 @@ class Deploy:
             self.startup_deadline,
             max(30.0, 2 * (self.action_deadline + self.message_deadline)),
         )
+
+
+HOST_RULE = (
+    "an IPv4 address of this machine (127.0.0.1, or one of its interfaces' addresses) or a name "
+    "that resolves to one: every process of the deploy binds its UDP sockets there"
+)
+
+
+def _check_host(host) -> None:
+    """Refuse a ``--host`` that the deploy's sockets (IPv4, ``wire.udp_socket``) cannot bind:
+    not an IPv4 address literal (``999.1.1.1``), a name that does not resolve, or an address of
+    another machine. Binds a UDP socket to port 0 there and closes it; nothing else."""
+    if not isinstance(host, str) or not host.strip():
+        raise ValueError(f"Deploy.host must be {HOST_RULE}, got {host!r}")
+    looks_numeric = all(part.isdigit() for part in host.split("."))
+    try:
+        address = str(ipaddress.IPv4Address(host)) if looks_numeric else None
+    except ValueError:
+        raise ValueError(
+            f"Deploy.host must be {HOST_RULE}, got {host!r} (not an IPv4 address)"
+        ) from None
+    try:
+        address = address or socket.gethostbyname(host)
+    except (OSError, UnicodeError):
+        raise ValueError(
+            f"Deploy.host must be {HOST_RULE}, got {host!r} (the name does not resolve)"
+        ) from None
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            sock.bind((address, 0))
+    except OSError as e:
+        raise ValueError(
+            f"Deploy.host must be {HOST_RULE}, got {host!r} ({address}: {e.strerror or e})"
+        ) from None
 
 
 _DEPLOY_NAMES = {
