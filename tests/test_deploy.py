@@ -32,35 +32,111 @@ from sparsecomm.sweep import Run
 
 # -- the datagram ---------------------------------------------------------------------------
 
+AUTH = wire.Auth(bytes(range(32)))
+"""A team secret for the tests that make datagrams by hand."""
+HEAD = wire.HEADER_BYTES
+"""19: a datagram's header and MAC."""
+
 
 def test_datagram_round_trip_and_header_size():
     packet = channel.encode(np.array([0, 3, 0, 15, 1, 0, 0, 0, 0, 2]), "paper")
-    data = wire.pack(wire.MSG, 2, 0, 123456, 4095, packet)
-    assert len(data) == wire.HEADER_BYTES + len(packet) and wire.HEADER_BYTES == 13
-    dg = wire.parse(data)
+    data = AUTH.pack(wire.MSG, 2, 0, 123456, 4095, packet)
+    assert len(data) == wire.HEADER_BYTES + len(packet) and wire.HEADER_BYTES == 19
+    dg = AUTH.parse(data)
     assert dg == wire.Datagram(wire.MSG, 2, 0, 123456, 4095, packet)
-    empty = wire.parse(wire.pack(wire.MSG, 0, 1, 7, 3))  # an open gate with null symbols
+    empty = AUTH.parse(AUTH.pack(wire.MSG, 0, 1, 7, 3))  # an open gate with null symbols
     assert empty.payload == b"" and empty.kind == wire.MSG
     with pytest.raises(ValueError, match="step"):
-        wire.pack(wire.MSG, 0, 1, 0, 70000)
+        AUTH.pack(wire.MSG, 0, 1, 0, 70000)
     with pytest.raises(ValueError, match="sender"):
-        wire.pack(wire.MSG, 256, 1, 0, 0)
+        AUTH.pack(wire.MSG, 256, 1, 0, 0)
+    with pytest.raises(ValueError, match="at least 16 bytes"):
+        wire.Auth(b"short")
 
 
-def test_parse_never_raises_and_refuses_garbage():
+def test_parse_never_raises_and_refuses_garbage_and_forgeries():
+    """Random bytes, a sealed datagram with 1-3 bits flipped (in its fields, MAC or payload),
+    and datagrams sealed under another secret (any kind, any fields): none is accepted."""
     rng = np.random.default_rng(0)
-    good = wire.pack(wire.MSG, 1, 2, 5, 9, b"\x80\x12\x34\x56\x78\x9a")
+    good = AUTH.pack(wire.MSG, 1, 2, 5, 9, b"\x80\x12\x34\x56\x78\x9a")
+    stranger = wire.Auth(bytes(range(1, 33)))
     accepted = 0
     for n in range(3000):
-        if n % 2:
+        if n % 3 == 0:
             data = rng.bytes(int(rng.integers(0, 40)))
-        else:  # the good datagram with 1-3 bits flipped: the CRC-16 refuses it
+        elif n % 3 == 1:
             bits = np.unpackbits(np.frombuffer(good, np.uint8))
             bits[rng.choice(bits.size, int(rng.integers(1, 4)), replace=False)] ^= 1
             data = np.packbits(bits).tobytes()
-        accepted += wire.parse(data) is not None
+        else:
+            kind = int(rng.choice(list(wire.KINDS)))
+            fields = rng.integers(0, 256, 2).tolist() + rng.integers(0, 1000, 2).tolist()
+            data = stranger.pack(kind, *fields, rng.bytes(int(rng.integers(0, 30))))
+        accepted += AUTH.parse(data) is not None
     assert accepted == 0
-    assert wire.parse(None) is None and wire.parse(b"SC") is None
+    assert AUTH.parse(None) is None and AUTH.parse(b"SC") is None
+    old = b"SC\x11" + bytes(10) + b"\x01"  # version 1 (a CRC-16 where the MAC is)
+    assert AUTH.parse(old + bytes(wire.HEADER_BYTES - len(old))) is None
+
+
+def test_reports_and_hellos_have_a_fixed_layout_and_a_parser_that_never_raises():
+    report = wire.Report(
+        action=3,
+        rejoined=True,
+        sim_wire=120,
+        frame=120,
+        missing=1,
+        dup=0,
+        stale=2,
+        bad=2**32 - 1,
+        no_map=0,
+        payload=(17, 0),
+        spoke=(1, 0),
+        datagram=(34, 0),
+        sent=(68, 0),
+        sent_n=(2, 0),
+    )
+    data = wire.pack_report(report)
+    assert len(data) == wire.report_bytes(2) == 31 + 2 * 12
+    assert wire.parse_report(data, 2) == report
+    assert wire.parse_report(data, 1) is None and wire.parse_report(data + b"\0", 2) is None
+    assert wire.parse_report(data[:-1], 2) is None and wire.parse_report(None, 2) is None
+    flag = bytearray(data)
+    flag[2] = 2  # rejoined is 0 or 1
+    assert wire.parse_report(bytes(flag), 2) is None
+    rng = np.random.default_rng(2)
+    for _ in range(2000):  # whatever the bytes: a report or None, never an exception
+        junk = rng.bytes(int(rng.choice([wire.report_bytes(2), int(rng.integers(0, 80))])))
+        got = wire.parse_report(junk, 2)
+        assert got is None or (len(got.spoke) == 2 and set(got.spoke) <= {0, 1})
+        assert wire.parse_hello(junk) in (None, int.from_bytes(junk, "big"))
+    for bad in (b"null", b"[]", b'{"a": 1e999}'):  # the JSON payloads that crashed the world
+        assert wire.parse_report(bad, 2) is None
+
+
+def test_secret_files(tmp_path):
+    path = wire.write_secret(tmp_path / "team.key")
+    assert os.stat(path).st_mode & 0o777 == 0o600
+    secret = wire.read_secret(path)
+    assert len(secret) == wire.SECRET_BYTES and secret != wire.read_secret(
+        wire.write_secret(tmp_path / "other.key")
+    )
+    with pytest.raises(FileExistsError):
+        wire.write_secret(path)
+    for name, text, mode, match in (
+        ("open.key", "ab" * 32, 0o644, "chmod 600"),
+        ("short.key", "ab" * 8, 0o600, "at least 32 hex digits"),
+        ("text.key", "not hex at all!", 0o600, "hex digits only"),
+    ):
+        bad = tmp_path / name
+        bad.write_text(text)
+        bad.chmod(mode)
+        with pytest.raises(ValueError, match=f"AgentArgs.secret_file .*{match}"):
+            wire.read_secret(bad, "AgentArgs.secret_file")
+    with pytest.raises(ValueError, match="not a regular file"):
+        wire.read_secret(tmp_path, "x")
+    with pytest.raises(ValueError, match="cannot be read"):
+        wire.read_secret(tmp_path / "missing.key", "x")
 
 
 @pytest.mark.parametrize(
@@ -125,14 +201,14 @@ def test_addresses():
 
 
 def test_faults_are_seeded_and_do_what_they_say():
-    dg = wire.pack(wire.MSG, 0, 1, 3, 4, b"\x01\x02")
+    dg = AUTH.pack(wire.MSG, 0, 1, 3, 4, b"\x01\x02")
     assert inject(Faults(), dg, 3, 4, 0, 1) == [(0.0, dg)]
     assert inject(Faults(loss=1.0), dg, 3, 4, 0, 1) == []
     assert [d for _, d in inject(Faults(duplicate=1.0), dg, 3, 4, 0, 1)] == [dg, dg]
     held = inject(Faults(reorder=1.0, reorder_delay=0.05), dg, 3, 4, 0, 1)
     assert len(held) == 1 and 0 <= held[0][0] <= 0.05
     junk = inject(Faults(garbage=1.0), dg, 3, 4, 0, 1)
-    assert len(junk) == 2 and wire.parse(junk[1][1]) is None
+    assert len(junk) == 2 and AUTH.parse(junk[1][1]) is None
     faults = Faults(loss=0.2, duplicate=0.1, reorder=0.1, garbage=0.01, seed=5)
     fates = [inject(faults, dg, b, t, 0, 1) for b in range(20) for t in range(50)]
     assert fates == [inject(faults, dg, b, t, 0, 1) for b in range(20) for t in range(50)]
@@ -403,7 +479,7 @@ def _drain(sock, seen: list, forward=None, wait: float = 0.02) -> None:
             data, _ = sock.recvfrom(wire.MAX_DATAGRAM)
         except (TimeoutError, BlockingIOError):
             return
-        seen.append((wire.parse(data), len(data)))
+        seen.append((AUTH.parse(data), len(data)))
         if forward is not None:
             sock.sendto(data, forward)
 
@@ -435,6 +511,7 @@ def test_silent_links_put_no_datagram_on_the_network(tmp_path, loss):
                 world=f"{host}:{world.getsockname()[1]}",
                 seed=3,
                 episodes=1,
+                secret_file=_secret(tmp_path),
                 listen=f"{host}:{ports[i]}",
                 faults=Faults(loss=loss, seed=4),
                 deadlines=Deadlines(message=0.05),
@@ -451,12 +528,12 @@ def test_silent_links_put_no_datagram_on_the_network(tmp_path, loss):
             for i, agent in enumerate(agents):
                 heard = None if t == steps else maps[i]  # the last step: no map
                 obs = rng.normal(size=agent._obs_dim()).astype(np.float32)
-                data = wire.pack(wire.OBS, wire.WORLD, i, 0, t, wire.pack_obs(obs, heard))
-                assert agent._act(wire.parse(data)) is None
+                data = AUTH.pack(wire.OBS, wire.WORLD, i, 0, t, wire.pack_obs(obs, heard))
+                assert agent._act(AUTH.parse(data)) is None
                 world.settimeout(5.0)
-                dg = wire.parse(world.recvfrom(wire.MAX_DATAGRAM)[0])
+                dg = AUTH.parse(world.recvfrom(wire.MAX_DATAGRAM)[0])
                 assert (dg.kind, dg.sender, dg.step) == (wire.ACT, i, t)
-                reports[i, t] = json.loads(dg.payload)
+                reports[i, t] = wire.parse_report(dg.payload, k - 1)._asdict()
                 spoke[i] = reports[i, t]["spoke"]
     finally:
         for sock in (world, *taps, *(a.sock for a in agents)):
@@ -477,7 +554,7 @@ def test_silent_links_put_no_datagram_on_the_network(tmp_path, loss):
                 continue
             speaking += 1
             assert report["sent_n"][r] == len(sizes) and report["sent"][r] == sum(sizes)
-            assert sizes in ([], [13 + report["frame"] // 8])  # the frame, once, or lost
+            assert sizes in ([], [HEAD + report["frame"] // 8])  # the frame, once, or lost
             lost += not sizes
     assert silent > 0 and speaking > 0
     assert (lost > 0) == (loss > 0)
@@ -496,6 +573,15 @@ def test_silent_links_put_no_datagram_on_the_network(tmp_path, loss):
 
 
 # -- real deployments -----------------------------------------------------------------------
+
+
+def _secret(folder: Path) -> Path:
+    """A secret file holding :data:`AUTH`'s secret."""
+    path = folder / "team.key"
+    if not path.exists():
+        path.write_text(bytes(range(32)).hex())
+        path.chmod(0o600)
+    return path
 
 
 def _team(
@@ -538,13 +624,13 @@ def test_three_agent_processes_play_evals_episodes(tmp_path):
     for name in ("success_rate", "episode_length", "bits_per_step", "wire_bits_per_step"):
         assert row[name] == pytest.approx(sim[name], rel=1e-12), name
     # what crossed the wire: exactly the library's frames, one per speaking sender, one copy
-    # (and a 13-byte header) per speaking link, and nothing for a silent link
+    # (and a 19-byte header and MAC) per speaking link, and nothing for a silent link
     assert row["frame_bits_per_step"] == pytest.approx(row["wire_bits_per_step"])
     assert row["datagrams_per_step"] == pytest.approx(row["speaking_links_per_step"])
     assert row["network_datagrams_per_step"] == pytest.approx(row["datagrams_per_step"])
-    assert row["header_bits_per_step"] == pytest.approx(8 * 13 * row["datagrams_per_step"])
+    assert row["header_bits_per_step"] == pytest.approx(8 * HEAD * row["datagrams_per_step"])
     assert 0 < row["datagrams_per_step"] <= 6
-    network = row["datagram_bits_per_step"] + 8 * (13 + 28) * row["datagrams_per_step"]
+    network = row["datagram_bits_per_step"] + 8 * (HEAD + 28) * row["datagrams_per_step"]
     assert row["network_bits_per_step"] == pytest.approx(network)
     # eval's count of the datagrams and the frames they carry
     assert row["datagrams_per_step"] == pytest.approx(sim["datagrams_per_step"], rel=1e-12)
@@ -574,7 +660,7 @@ def _check_tables(folder: Path, k: int, steps: int) -> tuple[list, list]:
     for r in links:
         frame = frame_of[(r["episode"], r["step"], r["sender"])]
         due = int(r["datagram_bytes"])
-        assert due == (13 + int(frame["frame_bits"]) // 8 if r["spoke"] == "1" else 0), r
+        assert due == (HEAD + int(frame["frame_bits"]) // 8 if r["spoke"] == "1" else 0), r
     for r in frames:
         assert int(r["frame_bits"]) == int(r["sim_wire_bits"]), r
     return links, frames
@@ -668,7 +754,7 @@ def test_a_gated_holding_team_survives_loss_and_counts_it(tmp_path):
     sent = sum(r["datagram_bytes"] != "0" for r in links) - len(dropped)
     assert round(row["network_datagrams_per_step"] * steps) == sent
     assert row["datagrams_per_step"] < 6  # silent links still send nothing
-    assert row["network_bits_per_step"] < row["datagram_bits_per_step"] + 8 * (13 + 28) * 6
+    assert row["network_bits_per_step"] < row["datagram_bits_per_step"] + 8 * (HEAD + 28) * 6
 
 
 @pytest.mark.slow
@@ -718,3 +804,103 @@ def test_deploy_refuses_an_index_out_of_range(tmp_path):
         deploy(Deploy(run=PRETRAINED, index=(1,), out=tmp_path / "deploy"))
     with pytest.raises(RunError, match=r"Deploy\.run must be a run folder"):
         deploy(Deploy(run=tmp_path, out=tmp_path / "deploy"))
+
+
+# -- a hostile peer -------------------------------------------------------------------------
+
+
+def test_a_flood_of_forgeries_changes_no_action(tmp_path):
+    """A peer without the secret floods the world, both agents and the launcher (10,000
+    datagrams per second in all) with forged datagrams of every kind (random MACs, another
+    secret's forged bye / hello / observation / action / frame, the version-1 JSON payloads that
+    crashed the world, cut-short and oversized ones) while the team plays: every episode is
+    eval's (same actions, messages and bits), no process dies, and the drops are counted."""
+    team = _team(tmp_path / "team", num_agents=2, max_steps=12)
+    args = Deploy(run=team, episodes=8, out=tmp_path / "deploy", forgeries_per_second=1e4)
+    (row,) = deploy(args)["runs"]
+    sim = row["simulation"]
+    assert sim["identical_episodes"] == 8, sim["different_episodes"]
+    assert row["restarts"] == 0 and row["missing_actions_per_step"] == 0
+    sent = row["forgeries_sent"]
+    assert set(sent) == {"world", "agent_0", "agent_1", "launcher"} and min(sent.values()) > 0
+    assert row["garbage_dropped"] > 0 and row["world_dropped"] > 0
+
+
+def test_an_agent_drops_what_is_not_sealed_or_not_expected(tmp_path):
+    """One agent in this process: a bye, an observation or a frame sealed under another secret
+    is dropped (counted ``bad``); so is a sealed one from the wrong sender, for another
+    recipient, or for an episode or step outside the batch; an observation already acted on,
+    replayed, is stale; only the world's sealed bye ends the agent."""
+    from sparsecomm.deploy.agent import Agent, AgentArgs
+
+    team = _team(tmp_path / "team", num_agents=2, max_steps=5)
+    host = "127.0.0.1"
+    world = wire.udp_socket((host, 0))
+    ports = wire.free_ports(host, 2)
+    args = AgentArgs(
+        team=team,
+        agent=0,
+        peers=tuple(f"{host}:{p}" for p in ports),
+        world=f"{host}:{world.getsockname()[1]}",
+        seed=1,
+        episodes=2,
+        secret_file=_secret(tmp_path),
+    )
+    agent = Agent(args)
+    try:
+        stranger = wire.Auth(bytes(range(100, 132)))
+        obs = wire.pack_obs(np.zeros(agent._obs_dim(), np.float32), [False])
+        dropped = [
+            stranger.pack(wire.BYE, wire.WORLD, 0, 0, 0),
+            stranger.pack(wire.OBS, wire.WORLD, 0, 0, 0, obs),
+            stranger.pack(wire.MSG, 1, 0, 0, 0, b"\x80\x00"),
+            AUTH.pack(wire.BYE, 1, 0, 0, 0),  # a bye not from the world
+            AUTH.pack(wire.OBS, 1, 0, 0, 0, obs),  # an observation not from the world
+            AUTH.pack(wire.BYE, wire.WORLD, 1, 0, 0),  # for agent 1
+            AUTH.pack(wire.OBS, wire.WORLD, 0, 2, 0, obs),  # episode outside the batch
+            AUTH.pack(wire.MSG, 1, 0, 0, 5, b"\x80\x00"),  # step outside the episode
+            AUTH.pack(wire.MSG, 0, 0, 0, 0, b"\x80\x00"),  # from myself
+            AUTH.pack(wire.BYE, wire.WORLD, 0, 0, 0, b"x"),  # a bye with a payload
+            b"SC\x15" + bytes(10) + b"\xff\xff",  # version 1 with a CRC-16
+        ]
+        for data in dropped:
+            assert agent._handle(data) is None
+        assert agent.counts["bad"] == len(dropped)
+        first = AUTH.pack(wire.OBS, wire.WORLD, 0, 0, 1, obs)
+        assert agent._act(agent._handle(first)) is None
+        world.settimeout(5.0)
+        act = AUTH.parse(world.recvfrom(wire.MAX_DATAGRAM)[0])
+        assert act.kind == wire.ACT and wire.parse_report(act.payload, 1).bad == len(dropped)
+        assert agent._handle(AUTH.pack(wire.OBS, wire.WORLD, 0, 0, 0, obs)) is None  # replayed
+        assert agent.counts["stale"] == 1
+        assert agent._handle(AUTH.pack(wire.BYE, wire.WORLD, 0, 0, 0)) == "bye"
+    finally:
+        world.close()
+        agent.sock.close()
+
+
+@pytest.mark.slow
+def test_the_launcher_exits_2_when_the_world_dies(tmp_path):
+    """The world killed mid-run: the launcher stops every process and exits 2 with the cause
+    (before, it died of SIGABRT in 2 of 3 runs: its simulation thread was inside XLA)."""
+    team = _team(tmp_path / "team", num_agents=2, max_steps=64)
+    out = tmp_path / "deploy"
+    cmd = [sys.executable, "-m", "sparsecomm.cli", "deploy", "--run", str(team)]
+    cmd += ["--episodes", "500", "--out", str(out)]
+    launcher = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
+    try:
+        until = time.monotonic() + 120
+        while time.monotonic() < until and not (out / "run_0" / "episodes.jsonl").exists():
+            time.sleep(0.2)
+        (world,) = [p for p in _children(launcher.pid) if b"deploy.world" in _cmdline(p)]
+        os.kill(world, signal.SIGKILL)
+        _, err = launcher.communicate(timeout=60)
+    finally:
+        if launcher.poll() is None:
+            launcher.kill()
+    assert launcher.returncode == 2, err
+    assert "the world exited with -9" in err and "Traceback" not in err
+
+
+def _cmdline(pid: int) -> bytes:
+    return Path(f"/proc/{pid}/cmdline").read_bytes()

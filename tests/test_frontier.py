@@ -114,7 +114,7 @@ def test_wire_frontier_rows_count_the_network_from_the_datagrams():
     ]
     (row,) = wire_frontier.rows({"runs": runs}, config, "small", "rl")
     assert (row["counts"], row["budget"], row["seeds"], row["check_bits"]) == ("wire", 24.0, 5, 8)
-    assert row["network_bits"][0] == pytest.approx(26.0 + 0.5 * 8 * (13 + 28))
+    assert row["network_bits"][0] == pytest.approx(26.0 + 0.5 * 8 * (19 + 28))
     lo, mean, hi = row["success"][1], row["success"][0], row["success"][2]
     assert lo < mean < hi and mean == pytest.approx(0.92)
     old = [{k: v for k, v in r.items() if not k.startswith("datagram")} for r in runs]

@@ -1,8 +1,9 @@
 """Decentralised execution of a trained team: one OS process per agent, one for the world, the
 channel's real frames as UDP datagrams between them (issue 19, docs/deploy.md).
 
-* :mod:`~sparsecomm.deploy.wire`: the datagram around every frame (13-byte header with CRC-16;
-  a silent link sends none), the heard map the world appends to each observation (which
+* :mod:`~sparsecomm.deploy.wire`: the datagram around every frame (an 11-byte header and an
+  8-byte HMAC-SHA-256 under the team's secret; a silent link sends none), the reports' fixed
+  binary layout, the heard map the world appends to each observation (which
   senders spoke to the agent last step), address and socket helpers;
 * :mod:`~sparsecomm.deploy.faults`: seeded loss, duplication, reordering and garbage on the
   agents' links, and the deadlines of every wait;

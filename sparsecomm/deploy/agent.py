@@ -16,21 +16,26 @@ sends for step ``t`` of episode ``b``:
 4. when at least one of its links speaks, encodes its frame (``channel.encode_sender``) and sends
    one copy to each recipient whose link speaks, through the fault layer; a silent agent sends
    its peers nothing. Then it sends the world its action with what it sent (which links spoke,
-   the frame's bits, the datagrams) and heard (frames missing, duplicates, stale and garbage
-   datagrams dropped), as JSON.
+   the frame's bits, the datagrams) and heard (frames missing, duplicates, stale and dropped
+   datagrams), a ``wire.Report``.
+
+Every datagram is sealed with the team's secret (``wire.Auth``); one that fails its MAC, or
+whose sender, kind, episode or step is not one this agent expects (an observation or ``bye``
+not from the world, a frame not from one of its senders, an episode or step outside the batch),
+is dropped before its payload is read and counted (``bad``).
 
 An observation of step 0, or the first observation this process sees, starts from a zero GRU
 state: a restarted agent rejoins the episode where it is, with its recurrent state reset (and,
 with ``on_drop = last`` or ``on_silence = hold``, no last messages). A duplicate observation is
-answered with the same action; an older one is ignored. The agent exits on the world's ``bye``
-(0), after ``Deadlines.idle`` without a word from the world (3), or on SIGINT/SIGTERM.
+answered with the same action; an older one is dropped (``stale``). The agent exits on the
+world's ``bye`` (0; only a sealed ``bye`` from the world counts), after ``Deadlines.idle``
+without a word from the world (3), or on SIGINT/SIGTERM.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import heapq
-import json
 import os
 import sys
 import time
@@ -62,6 +67,10 @@ class AgentArgs:
     """The batch seed: ``sparsecomm eval`` uses ``config.seed + 1000003 + run index``."""
     episodes: int
     """Episodes in the batch (the draws depend on it, as in ``sparsecomm eval --episodes``)."""
+    secret_file: Path
+    """File of the team's secret (hex; only its owner may read it: ``wire.read_secret``),
+    under which every datagram is sealed and checked. ``sparsecomm deploy`` makes one per
+    deployment; on separate hosts, copy the same file to each (docs/deploy.md)."""
     listen: str = ""
     """Address to bind (host:port); default: this agent's entry of ``peers``. On a host behind
     another interface, e.g. ``0.0.0.0:9001``."""
@@ -137,6 +146,7 @@ class Agent:
         from sparsecomm import channel
         from sparsecomm.deploy import core
 
+        self.auth = wire.Auth(wire.read_secret(args.secret_file, "AgentArgs.secret_file"))
         core.use_compile_cache(args.jax_cache)
         self.args, self.core, self.channel, self.jnp = args, core, channel, jnp
         loaded = core.read_team(args.team)
@@ -154,7 +164,7 @@ class Agent:
         self.sock = wire.udp_socket(listen)
         self.out = Outbox(self.sock)
         self.params = jax.tree.map(jnp.asarray, loaded.actor)
-        steps = loaded.env.config.max_steps
+        steps = self.steps = loaded.env.config.max_steps
         key = core.batch_key(args.seed)
         self.chan, gumbel = core.agent_draws(key, args.episodes, steps, k, loaded.env.num_actions)
         self.gumbel = np.asarray(gumbel[:, :, self.i])  # (T, N, A)
@@ -202,9 +212,8 @@ class Agent:
 
     def run(self) -> int:
         d = self.args.deadlines
-        hello = wire.pack(
-            wire.HELLO, self.i, wire.WORLD, 0, 0, json.dumps({"pid": os.getpid()}).encode()
-        )
+        pid = (os.getpid() & 0xFFFFFFFF).to_bytes(wire.HELLO_BYTES, "big")
+        hello = self.auth.pack(wire.HELLO, self.i, wire.WORLD, 0, 0, pid)
         start = time.monotonic()
         next_hello = 0.0
         obs = None
@@ -263,11 +272,12 @@ class Agent:
                 return got
 
     def _handle(self, data: bytes):
-        dg = wire.parse(data)
-        if dg is None or dg.recipient != self.i:
+        dg = self.auth.parse(data)
+        in_batch = dg is not None and dg.episode < self.args.episodes and dg.step < self.steps
+        if dg is None or dg.recipient != self.i or not in_batch:
             self.counts["bad"] += 1
             return None
-        if dg.kind == wire.BYE and dg.sender == wire.WORLD:
+        if dg.kind == wire.BYE and dg.sender == wire.WORLD and not dg.payload:
             return "bye"
         if dg.kind == wire.OBS and dg.sender == wire.WORLD:
             here = (dg.episode, dg.step)
@@ -275,6 +285,7 @@ class Agent:
                 self.out.send(self.last_act[1], self.world)  # the world asks again
                 return None
             if self.last_act is not None and here < self.last_act[0]:
+                self.counts["stale"] += 1  # an observation already acted on: a replay
                 return None
             return dg
         if dg.kind == wire.MSG and dg.sender in self.senders:
@@ -369,35 +380,37 @@ class Agent:
         self.carry, self.t = out.carry, t
         symbols, signal = np.asarray(out.symbols), np.asarray(out.signal)
         spoke = np.asarray(out.spoke, bool)
-        report = {
-            "a": int(out.action),
-            "payload": [int(x) for x in np.asarray(out.payload)],
-            "sim_wire": round(float(out.wire)),
-            "spoke": [int(x) for x in spoke],
-            "frame": 0,
-            "datagram": [0] * (self.k - 1),
-            "sent": [0] * (self.k - 1),
-            "sent_n": [0] * (self.k - 1),
-            "missing": missing,
-            "rejoined": rejoined,
-        }
+        n = self.k - 1
+        datagram, sent, sent_n = [0] * n, [0] * n, [0] * n
+        frame_bits = 0
         if self.cfg.speaks and spoke.any():  # one frame, one copy per speaking recipient
             frame = self.channel.encode_sender(self.cfg, symbols, signal)
-            report["frame"] = 8 * len(frame)
+            frame_bits = 8 * len(frame)
             for r, j in enumerate(self.recipients):
                 if not spoke[r]:
                     continue
-                dg = wire.pack(wire.MSG, self.i, j, b, t, frame)
+                dg = self.auth.pack(wire.MSG, self.i, j, b, t, frame)
                 sends = inject(self.args.faults, dg, b, t, self.i, j)
                 for delay, data in sends:
                     self.out.send(data, self.peers[j], delay)
-                report["datagram"][r] = len(dg)
-                report["sent"][r] = sum(len(data) for _, data in sends)
-                report["sent_n"][r] = len(sends)
+                datagram[r], sent[r], sent_n[r] = len(dg), sum(len(d) for _, d in sends), len(sends)
         self.sent_prev = symbols
-        report.update(self.counts)
+        counts = {name: min(v, 2**32 - 1) for name, v in self.counts.items()}
         self.counts = dict.fromkeys(self.counts, 0)
-        act = wire.pack(wire.ACT, self.i, wire.WORLD, b, t, json.dumps(report).encode())
+        report = wire.Report(
+            action=int(out.action),
+            rejoined=rejoined,
+            sim_wire=round(float(out.wire)),
+            frame=frame_bits,
+            missing=missing,
+            **counts,
+            payload=tuple(int(x) for x in np.asarray(out.payload)),
+            spoke=tuple(int(x) for x in spoke),
+            datagram=tuple(datagram),
+            sent=tuple(sent),
+            sent_n=tuple(sent_n),
+        )
+        act = self.auth.pack(wire.ACT, self.i, wire.WORLD, b, t, wire.pack_report(report))
         self.last_act = ((b, t), act)
         self.out.send(act, self.world)
         return newer

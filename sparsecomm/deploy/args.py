@@ -77,6 +77,11 @@ class Deploy:
     this machine (``127.0.0.1``, or one of its interfaces' addresses) or a name that resolves to
     one, checked by binding a UDP socket there. ours: loopback. For agents on separate hosts
     start the processes by hand (docs/deploy.md)."""
+    forgeries_per_second: float = 0.0
+    """A hostile peer without the team's secret sends every process (the world, each agent,
+    the launcher) this many forged datagrams per second in all, of every kind
+    (``sparsecomm.deploy.hostile``), while the team plays: a drill of the MAC and the parsers
+    (docs/deploy.md, "Who can stop the team"). ``inf``: as fast as it can. ours: 0 (no peer)."""
     reference: bool = True
     """Also play the same episodes in simulation (the run's ``sparsecomm eval`` draws, with
     ``loss`` as the simulator's packet erasure) and report them side by side, with the count of
@@ -84,6 +89,12 @@ class Deploy:
 
     def __post_init__(self):
         at_least(self, episodes=1, kills_per_episode=0, kill_window=1, fault_seed=0)
+        rate = self.forgeries_per_second
+        if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not rate >= 0:
+            raise ValueError(
+                f"Deploy.forgeries_per_second must be a number >= 0 (inf: as fast as it can), "
+                f"got {rate!r}"
+            )
         if isinstance(self.index, int):
             self.index = (self.index,)
         if not self.index:

@@ -1,19 +1,24 @@
 """``sparsecomm deploy``: start the world and one process per agent, keep them alive, report.
 
-For each run index: export the team (weights only) into the output folder, pick free UDP ports
-on ``Deploy.host``, start ``python -m sparsecomm.deploy.world`` and one ``python -m
+For each run index: export the team (weights only) into the output folder, make the team's
+secret (``wire.write_secret``, in a private temporary folder removed at the end: the processes
+get its path, never the secret on a command line), pick free UDP ports on ``Deploy.host``,
+start ``python -m sparsecomm.deploy.world`` and one ``python -m
 sparsecomm.deploy.agent`` per agent (each in its own session, so a Ctrl-C reaches the launcher
 alone; each asks Linux for SIGTERM when its parent dies, ``wire.die_with_parent``), then
 supervise them:
 
 * the world reports every step to the launcher's monitor socket; with ``kills_per_episode`` the
   launcher SIGKILLs the scheduled agent at the scheduled step (``kill_plan``, seeded);
-* an agent process that dies while the world plays is started again at once (its recurrent
-  state starts from zero: it rejoins at the step the world is at; ``sparsecomm.deploy.agent``);
+* an agent process that exits before the world has played every episode (the world's sealed
+  ``done``), whatever its exit code, is started again at once (its recurrent state starts from
+  zero: it rejoins at the step the world is at; ``sparsecomm.deploy.agent``); one that keeps
+  dying fails the run;
 * nothing waits without a deadline: the world that reports no step for
   ``Deadlines.startup + Deadlines.action`` seconds is stopped and the run refused;
 * on return, error, Ctrl-C or SIGTERM every child is stopped (SIGTERM, then SIGKILL after 3 s)
-  and reaped: no orphan.
+  and reaped: no orphan; the simulation thread is joined before the launcher exits, so its exit
+  status is 0, 2 (a ``RunError``: the cause printed) or 130 (interrupted), never a signal.
 
 Then it reads the world's ``episodes.jsonl``, computes eval's metrics with 95% bootstrap CIs
 over episodes (``sparsecomm.stats``), and, with ``reference``, plays the same episodes in
@@ -29,6 +34,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -125,12 +131,23 @@ def play(
     kills_per_episode: int = 0,
     kill_window: int = 8,
     kill_seed: int = 0,
+    peer=None,
 ) -> dict:
     """Play one deployment of the exported ``team``; ``{"episodes": [...], "kills", "restarts",
-    "wall_s"}``. Raises ``RunError`` when the world fails or stalls."""
+    "wall_s", "peer"}``. Raises ``RunError`` when the world fails or stalls.
+
+    ``peer``: a hostile peer (``Deploy.forgeries_per_second``), called with ``{name: ((host,
+    port), recipient id)}`` for the world, each agent (``agent_<i>``) and the launcher's monitor
+    once the processes are started; it returns an object whose ``go()`` the launcher calls when
+    the world reports its first step (the drill is of the play; a flood during start-up only
+    delays it) and whose ``stop()`` returns what it did (``"peer"`` of the result), e.g. a
+    ``hostile.Flood``; ``None``: no peer."""
     faults = Faults() if faults is None else faults
     deadlines = Deadlines() if deadlines is None else deadlines
     k = num_agents
+    private = Path(tempfile.mkdtemp(prefix="sparsecomm-deploy-"))  # mode 0700, removed below
+    secret = wire.write_secret(private / "team.key")
+    auth = wire.Auth(wire.read_secret(secret))
     ports = wire.free_ports(host, k + 1)
     world_addr = f"{host}:{ports[0]}"
     agents = [f"{host}:{p}" for p in ports[1:]]
@@ -138,7 +155,7 @@ def play(
     monitor_addr = f"{host}:{monitor.getsockname()[1]}"
     py = [sys.executable, "-m"]
     common = ["--team", str(team), "--seed", str(seed), "--episodes", str(episodes)]
-    common += ["--jax-cache", str(out / "jax_cache")]
+    common += ["--jax-cache", str(out / "jax_cache"), "--secret-file", str(secret)]
     world_cmd = [
         *py,
         "sparsecomm.deploy.world",
@@ -178,6 +195,7 @@ def play(
     (out / "episodes.jsonl").unlink(missing_ok=True)
     start = time.monotonic()
     kills, restarts = [], []
+    hostile = peer_did = None
     # Ctrl-C and SIGTERM stop every process. SIGINT is set here too, not left to Python: a
     # launcher started in the background of a script inherits SIGINT ignored, and Python then
     # installs no handler of its own.
@@ -189,24 +207,36 @@ def play(
         # shared compilation cache instead of compiling them again on the same cores.
         procs.wait_ready("agent_0", team_procs[0], deadlines.startup)
         team_procs += [procs.start(f"agent_{i}", agent_cmd(i)) for i in range(1, k)]
+        targets = {"world": (wire.parse_address(world_addr), wire.WORLD)}
+        targets |= {f"agent_{i}": (wire.parse_address(a), i) for i, a in enumerate(agents)}
+        targets["launcher"] = (wire.parse_address(monitor_addr), wire.WORLD)
+        hostile = None if peer is None else peer(targets)
         max_restarts = kills_per_episode * episodes + 3 * k
         stall = deadlines.startup + deadlines.action
         progress = time.monotonic()
-        monitor.settimeout(0.05)
+        done = False  # the world said it played every episode
+        last_step = (-1, -1)  # the latest (episode, step) the world reported
+        let_loose = False
         while world.poll() is None:
-            try:
-                dg = wire.parse(monitor.recv(wire.MAX_DATAGRAM))
-            except (TimeoutError, BlockingIOError, ConnectionError):
-                dg = None
-            now = time.monotonic()
-            if dg is not None and dg.kind == wire.STEP:
-                progress = now
+            # Every datagram waiting (a flood must not hold the world's step or done behind it),
+            # the first one waited for up to 50 ms.
+            for dg in _monitor_datagrams(monitor, auth):
+                done |= dg.kind == wire.DONE
+                # Progress is a step later than the last one seen: a replayed (sealed, real)
+                # step datagram must not hide a stalled world, nor trigger a kill twice.
+                if dg.kind != wire.STEP or (dg.episode, dg.step) <= last_step:
+                    continue
+                progress, last_step = time.monotonic(), (dg.episode, dg.step)
+                if hostile is not None and not let_loose:  # the team plays: let the peer loose
+                    hostile.go()
+                    let_loose = True
                 for step, agent in plan.get(dg.episode, []):
                     if step == dg.step and team_procs[agent].poll() is None:
                         team_procs[agent].kill()
                         kills.append({"episode": dg.episode, "step": step, "agent": agent})
-            for i, p in enumerate(team_procs):  # exit 0: told bye, the world is done
-                if p.poll() not in (None, 0) and world.poll() is None:
+            now = time.monotonic()
+            for i, p in enumerate(team_procs):  # an exit before the world is done: restart
+                if p.poll() is not None and not done and world.poll() is None:
                     if len(restarts) >= max_restarts:
                         raise RunError(
                             f"agent {i} keeps dying ({len(restarts)} restarts); its log:\n"
@@ -228,8 +258,11 @@ def play(
             with contextlib.suppress(subprocess.TimeoutExpired):
                 p.wait(max(until - time.monotonic(), 0.01))
     finally:
+        if hostile is not None:
+            peer_did = hostile.stop()
         procs.close()
         monitor.close()
+        shutil.rmtree(private, ignore_errors=True)
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     return {
@@ -237,7 +270,24 @@ def play(
         "kills": kills,
         "restarts": restarts,
         "wall_s": time.monotonic() - start,
+        "peer": peer_did,
     }
+
+
+def _monitor_datagrams(monitor, auth: wire.Auth, most: int = 4096) -> list[wire.Datagram]:
+    """The world's sealed datagrams waiting on the launcher's ``monitor`` socket (at most
+    ``most``; the first waited for up to 50 ms); anything else is dropped."""
+    found = []
+    monitor.settimeout(0.05)
+    for _ in range(most):
+        try:
+            dg = auth.parse(monitor.recv(wire.MAX_DATAGRAM))
+        except (TimeoutError, BlockingIOError, ConnectionError):
+            break
+        monitor.settimeout(0.0)
+        if dg is not None and dg.sender == wire.WORLD and dg.recipient == wire.WORLD:
+            found.append(dg)
+    return found
 
 
 def _interrupt(signum, frame):
@@ -372,21 +422,29 @@ def _deploy(args) -> dict:
             simulated = Background(
                 reference, env, team_net, channel, params, seed, args.episodes, args.greedy
             )
-        played = play(
-            team,
-            out / f"run_{r}",
-            seed,
-            args.episodes,
-            k,
-            host=args.host,
-            faults=faults,
-            deadlines=deadlines,
-            on_drop=args.on_drop,
-            greedy=args.greedy,
-            kills_per_episode=args.kills_per_episode,
-            kill_window=args.kill_window,
-            kill_seed=args.fault_seed,
-        )
+        try:
+            played = play(
+                team,
+                out / f"run_{r}",
+                seed,
+                args.episodes,
+                k,
+                host=args.host,
+                faults=faults,
+                deadlines=deadlines,
+                on_drop=args.on_drop,
+                greedy=args.greedy,
+                kills_per_episode=args.kills_per_episode,
+                kill_window=args.kill_window,
+                kill_seed=args.fault_seed,
+                peer=_peer(args, env),
+            )
+        except BaseException:
+            # An interpreter that exits while XLA runs in another thread dies of SIGABRT: let
+            # the simulation finish first, so that the exit status is the error's.
+            if simulated is not None:
+                simulated.thread.join()
+            raise
         means, cis = summarize(played["episodes"])
         row = {
             "index": r,
@@ -399,6 +457,8 @@ def _deploy(args) -> dict:
             "restarts": len(played["restarts"]),
             "wall_clock_s": played["wall_s"],
         }
+        if played["peer"] is not None:
+            row["forgeries_sent"] = played["peer"]
         if simulated is not None:
             row["simulation"] = compare(played["episodes"], simulated.result())
         results.append(row)
@@ -441,6 +501,26 @@ def _deploy(args) -> dict:
     return report
 
 
+def _peer(args, env):
+    """The hostile peer of ``Deploy.forgeries_per_second`` (``None``: none)."""
+    if not args.forgeries_per_second > 0:
+        return None
+    from sparsecomm.deploy.hostile import Flood
+
+    def start(targets):
+        return Flood(
+            targets,
+            num_agents=env.num_agents,
+            episodes=args.episodes,
+            steps=env.config.max_steps,
+            obs_dim=env.obs_dim,
+            rate=args.forgeries_per_second,
+            seed=args.fault_seed,
+        )
+
+    return start
+
+
 def _print_row(row: dict) -> None:
     ci = row["ci"]
     line = (
@@ -452,6 +532,11 @@ def _print_row(row: dict) -> None:
         f"{row['missing_messages_per_step']:.3f} lost; "
         f"{row['restarts']} restarts"
     )
+    if "forgeries_sent" in row:
+        line += (
+            f"\n    forged datagrams sent {sum(row['forgeries_sent'].values())}, dropped by the "
+            f"agents {row['garbage_dropped']} and the world {row['world_dropped']}"
+        )
     if "simulation" in row:
         sim = row["simulation"]
         line += (

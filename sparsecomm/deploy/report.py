@@ -38,8 +38,10 @@ def summarize(episodes: list[dict]) -> tuple[dict, dict]:
       speaking sender;
     * ``datagram_bits_per_step``: the frames the MSG datagrams due carry (one copy of its
       sender's frame per speaking link), as ``eval`` counts them; ``header_bits_per_step``:
-      their 13-byte headers; ``network_bits_per_step``: what the fault layer really sent
-      (lost datagrams not, duplicates and garbage yes), each with the ``wire.UDP_IP_BYTES`` of
+      their headers (``wire.HEADER_BYTES``, 19: 11 of fields and the 8-byte MAC);
+      ``mac_bits_per_step``: the MACs of every datagram really sent;
+      ``network_bits_per_step``: what the fault layer really sent (lost datagrams not,
+      duplicates and garbage yes), each with the ``wire.UDP_IP_BYTES`` of
       IPv4 and UDP;
     * ``datagrams_per_step`` (due) and ``network_datagrams_per_step`` (sent);
       ``speaking_links_per_step``; ``missing_messages_per_step``: frames a heard map promised
@@ -57,6 +59,7 @@ def summarize(episodes: list[dict]) -> tuple[dict, dict]:
         "datagram_bits_per_step": 8
         * (col["datagram_bytes"] - wire.HEADER_BYTES * col["datagrams"]),
         "header_bits_per_step": 8 * wire.HEADER_BYTES * col["datagrams"],
+        "mac_bits_per_step": 8 * wire.MAC_BYTES * col["sent_datagrams"],
         "network_bits_per_step": 8
         * (col["sent_bytes"] + wire.UDP_IP_BYTES * col["sent_datagrams"]),
         "datagrams_per_step": col["datagrams"],
@@ -76,6 +79,7 @@ def summarize(episodes: list[dict]) -> tuple[dict, dict]:
         duplicates_dropped=int(col["dup"].sum()),
         stale_dropped=int(col["stale"].sum()),
         garbage_dropped=int(col["bad"].sum()),
+        world_dropped=int(col["world_bad"].sum()),
         rejoins=int(col["rejoined"].sum()),
         steps_without_map=int(col["no_map"].sum()),
     )

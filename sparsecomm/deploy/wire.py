@@ -1,62 +1,99 @@
-"""The datagram around every packet: a 13-byte header, then the payload (docs/deploy.md).
+"""The datagram around every packet: an 11-byte header, a MAC, the payload (docs/deploy.md).
 
-Every UDP datagram of the runtime, between agents or with the world, is::
+Every UDP datagram of the runtime, between agents, with the world or with the launcher, is::
 
     offset  bytes  field
     0       2      magic b"SC"
-    2       1      version (high 4 bits, 1) and kind (low 4 bits, :data:`KINDS`)
+    2       1      version (high 4 bits, 2) and kind (low 4 bits, :data:`KINDS`)
     3       1      sender (agent id, or 255: the world)
     4       1      recipient (agent id, or 255: the world)
     5       4      episode (unsigned, big-endian)
     9       2      step (unsigned, big-endian)
-    11      2      CRC-16/CCITT of the 11 bytes above and the payload (``binascii.crc_hqx``,
-                   initial value 0xFFFF)
-    13      ...    payload
+    11      8      MAC: HMAC-SHA-256 (RFC 2104, ``hmac``) under the team's secret of the 11
+                   bytes above and the payload, truncated to its first :data:`MAC_BYTES`
+    19      ...    payload, in the fixed binary layout of its kind (below)
 
-Between agents (kind ``MSG``) the payload is the sender's **frame** of the step exactly as
-``sparsecomm.channel.encode_sender`` writes it (every non-silent link of the sender, error
-correction applied), one copy per recipient whose link speaks; a silent link sends **no**
-datagram. The world tells each agent whom to wait for: the observation's payload (kind ``OBS``)
-is the float32 observation followed by the **heard map** (:func:`pack_obs`), ``ceil((K-1)/8)``
-bytes whose bit ``s`` (byte ``s // 8``, bit ``s % 8``, least significant first) is set when the
-agent's ``s``-th sender (``channel.others``) spoke to it at the previous step, as that sender
-reported to the world. The episode and step of the header are what discards a stale frame: no
-sequence number is needed. :func:`parse`, :func:`parse_map` and :func:`parse_obs` never raise: a
-datagram too short, with another magic or version, an unknown kind or a CRC-16 mismatch is
-``None`` (garbage), and so is a map of another length or with a padding bit set. Counting: the
-header is :data:`HEADER_BYTES` per datagram, and the IPv4 and UDP headers add
-:data:`UDP_IP_BYTES` more on the network (counted, not measured: loopback carries them too).
+**Authentication.** Only a holder of the team's secret (:func:`read_secret`; the launcher makes
+a new one per deployment, :func:`write_secret`) can make a datagram that :meth:`Auth.parse`
+accepts: a forger guesses the 64-bit MAC with probability 2^-64 per try. The MAC covers the
+header, so the sender, kind, episode and step cannot be changed or a datagram moved to another
+step; each receiver then checks that they are ones it expects from that sender now (a replayed
+datagram of an earlier step is stale: dropped). Verification happens before any payload is
+read, and it is constant-time (``hmac.compare_digest``). A datagram that fails it is dropped and
+counted (``bad``). docs/deploy.md, "Who can stop the team", states the threat model.
+
+**Payloads** (every parser takes ``bytes`` and returns ``None`` for anything but the exact
+layout; none raises):
+
+======== =============== ========================================================================
+kind     from -> to      payload
+======== =============== ========================================================================
+``msg``  agent -> agent  the sender's **frame** of the step, exactly as
+                         ``sparsecomm.channel.encode_sender`` writes it; one copy per recipient
+                         whose link speaks, none for a silent link
+``obs``  world -> agent  ``obs_dim`` float32 (big-endian), then the **heard map**
+                         (:func:`pack_obs`): ``ceil((K-1)/8)`` bytes whose bit ``s`` (byte
+                         ``s // 8``, bit ``s % 8``, least significant first) is set when the
+                         agent's ``s``-th sender (``channel.others``) spoke to it at the previous
+                         step, as that sender reported to the world
+``act``  agent -> world  its action and what it sent and heard: :class:`Report`
+                         (:func:`pack_report`, :data:`REPORT_HEAD` then :data:`REPORT_LINK` per
+                         link)
+``hello`` agent -> world "I am up" (at start and after a restart): the process id, 4 bytes
+``bye``  world -> agent  shut down: empty
+``step`` world -> launcher progress: empty
+``done`` world -> launcher every episode played: empty
+======== =============== ========================================================================
+
+The episode and step of the header are what discards a stale frame: no sequence number is
+needed. Counting: the header and MAC are :data:`HEADER_BYTES` per datagram, and the IPv4 and UDP
+headers add :data:`UDP_IP_BYTES` more on the network (counted, not measured: loopback carries
+them too).
 """
 
 from __future__ import annotations
 
-import binascii
+import hmac
+import os
+import secrets
 import signal
 import socket
+import stat
 import struct
 import sys
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
 MAGIC = b"SC"
-VERSION = 1
-MSG, OBS, ACT, HELLO, BYE, STEP = 1, 2, 3, 4, 5, 6
-KINDS = {MSG: "msg", OBS: "obs", ACT: "act", HELLO: "hello", BYE: "bye", STEP: "step"}
-"""``msg``: agent -> agent, the sender's frame; ``obs``: world -> agent, its observation
-(float32, big-endian) and heard map; ``act``: agent -> world, its action and what it sent and
-heard (JSON); ``hello``: agent -> world, "I am up" (at start and after a restart); ``bye``:
-world -> agent, shut down; ``step``: world -> launcher, progress (empty)."""
+VERSION = 2
+"""2: the MAC (version 1 had a CRC-16 in its place and JSON reports; it is refused)."""
+MSG, OBS, ACT, HELLO, BYE, STEP, DONE = 1, 2, 3, 4, 5, 6, 7
+KINDS = {MSG: "msg", OBS: "obs", ACT: "act", HELLO: "hello", BYE: "bye", STEP: "step", DONE: "done"}
+"""The kinds of datagram (module docstring)."""
 WORLD = 255
-"""The id of the world process in the sender and recipient fields."""
-_HEAD = struct.Struct("!2sBBBIH")
-HEADER_BYTES = _HEAD.size + 2
-"""13: the header of every datagram."""
+"""The id of the world process (and of the launcher's monitor) in the sender and recipient
+fields."""
+FIELDS = struct.Struct("!2sBBBIH")
+"""The 11 bytes of fields before the MAC: magic, version and kind, sender, recipient, episode,
+step."""
+MAC_BYTES = 8
+"""Bytes of the truncated HMAC-SHA-256. ours: 8 (64 bits: RFC 2104 section 5 asks for at least
+half the hash's output for general use, NIST SP 800-107 allows truncation to 64 bits and more
+where the number of tries is bounded; a deployed team's few thousand datagrams per second give
+a forger one success in ~10^15 years). Counted in every datagram's bits."""
+HEADER_BYTES = FIELDS.size + MAC_BYTES
+"""19: the header and MAC of every datagram."""
 UDP_IP_BYTES = 28
 """IPv4 (20 bytes, no options) and UDP (8 bytes) headers of every datagram on the network
 (IPv6: 48)."""
 MAX_DATAGRAM = 65_507
 """The largest UDP payload over IPv4; the receive buffer size."""
+SECRET_BYTES = 32
+"""Bytes of a secret :func:`write_secret` makes (256 bits, the hash's block strength)."""
+MIN_SECRET_BYTES = 16
+"""The shortest secret :func:`read_secret` accepts (128 bits)."""
 
 
 class Datagram(NamedTuple):
@@ -68,38 +105,173 @@ class Datagram(NamedTuple):
     payload: bytes
 
 
-def pack(kind: int, sender: int, recipient: int, episode: int, step: int, payload=b"") -> bytes:
-    """One datagram (header + payload). Raises ``ValueError`` for fields out of range."""
-    if kind not in KINDS:
-        raise ValueError(f"kind must be one of {sorted(KINDS)}, got {kind!r}")
-    for name, value, top in (
-        ("sender", sender, 255),
-        ("recipient", recipient, 255),
-        ("episode", episode, 2**32 - 1),
-        ("step", step, 2**16 - 1),
-    ):
-        if not 0 <= value <= top:
-            raise ValueError(f"{name} must be in [0, {top}], got {value}")
-    head = _HEAD.pack(MAGIC, VERSION << 4 | kind, sender, recipient, episode, step)
+class Auth:
+    """The team's secret: seals datagrams (:meth:`pack`) and checks them (:meth:`parse`)."""
+
+    def __init__(self, secret: bytes):
+        secret = bytes(secret)
+        if len(secret) < MIN_SECRET_BYTES:
+            raise ValueError(
+                f"the team secret must have at least {MIN_SECRET_BYTES} bytes, got {len(secret)}"
+            )
+        self._key = secret
+
+    def _mac(self, head: bytes, payload: bytes) -> bytes:
+        return hmac.digest(self._key, head + payload, "sha256")[:MAC_BYTES]
+
+    def pack(
+        self, kind: int, sender: int, recipient: int, episode: int, step: int, payload=b""
+    ) -> bytes:
+        """One datagram (header, MAC, payload). Raises ``ValueError`` for fields out of
+        range."""
+        if kind not in KINDS:
+            raise ValueError(f"kind must be one of {sorted(KINDS)}, got {kind!r}")
+        for name, value, top in (
+            ("sender", sender, 255),
+            ("recipient", recipient, 255),
+            ("episode", episode, 2**32 - 1),
+            ("step", step, 2**16 - 1),
+        ):
+            if not 0 <= value <= top:
+                raise ValueError(f"{name} must be in [0, {top}], got {value}")
+        head = FIELDS.pack(MAGIC, VERSION << 4 | kind, sender, recipient, episode, step)
+        payload = bytes(payload)
+        if HEADER_BYTES + len(payload) > MAX_DATAGRAM:
+            raise ValueError(f"payload of {len(payload)} bytes does not fit in one datagram")
+        return head + self._mac(head, payload) + payload
+
+    def parse(self, data) -> Datagram | None:
+        """The datagram in ``data`` if it is one of ours sealed with this secret, else ``None``
+        (never raises; the MAC is checked before anything else is read)."""
+        if not isinstance(data, (bytes, bytearray, memoryview)) or len(data) < HEADER_BYTES:
+            return None
+        data = bytes(data)
+        head, mac, payload = (
+            data[: FIELDS.size],
+            data[FIELDS.size : HEADER_BYTES],
+            data[HEADER_BYTES:],
+        )
+        if not hmac.compare_digest(mac, self._mac(head, payload)):
+            return None
+        magic, vk, sender, recipient, episode, step = FIELDS.unpack(head)
+        if magic != MAGIC or vk >> 4 != VERSION or (vk & 15) not in KINDS:
+            return None
+        return Datagram(vk & 15, sender, recipient, episode, step, payload)
+
+
+def write_secret(path: str | Path) -> Path:
+    """A new secret of :data:`SECRET_BYTES` random bytes (``secrets``), written as hex to a new
+    file ``path`` that only its owner can read or write (created with mode 0600; an existing
+    file is refused, ``FileExistsError``)."""
+    path = Path(path)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as f:
+        f.write(secrets.token_hex(SECRET_BYTES) + "\n")
+    return path
+
+
+def read_secret(path: str | Path, name: str = "secret_file") -> bytes:
+    """The secret in ``path``: hex digits (at least ``2 * MIN_SECRET_BYTES``; surrounding
+    whitespace ignored), in a regular file that neither its group nor others may read or write
+    (POSIX). Raises ``ValueError`` naming ``name`` otherwise."""
+    path = Path(path)
+    try:
+        info = path.stat()
+        if not stat.S_ISREG(info.st_mode):
+            raise ValueError(f"{name} must be a file, got {str(path)!r} (not a regular file)")
+        if os.name == "posix" and info.st_mode & 0o077:
+            raise ValueError(
+                f"{name} {str(path)!r} may be read by others (mode {info.st_mode & 0o777:o}): "
+                f"chmod 600 it"
+            )
+        if info.st_size > 4096:
+            raise ValueError(f"{name} {str(path)!r} is not a secret (over 4096 bytes)")
+        text = path.read_text("ascii").strip()
+    except (OSError, UnicodeDecodeError) as e:
+        raise ValueError(f"{name} {str(path)!r} cannot be read: {e}") from None
+    try:
+        secret = bytes.fromhex(text)
+    except ValueError:
+        raise ValueError(f"{name} {str(path)!r} must hold hex digits only") from None
+    if len(secret) < MIN_SECRET_BYTES:
+        raise ValueError(
+            f"{name} {str(path)!r} must hold at least {2 * MIN_SECRET_BYTES} hex digits "
+            f"({MIN_SECRET_BYTES} bytes), got {len(text)}"
+        )
+    return secret
+
+
+class Report(NamedTuple):
+    """What an agent sent and heard at one step, in its action datagram (kind ``act``). Per
+    link ``r`` (recipient slot, ``channel.others``): ``payload[r]`` payload bits,
+    ``spoke[r]`` 1 when it spoke, ``datagram[r]`` the bytes of the datagram due (0: none),
+    ``sent[r]`` / ``sent_n[r]`` the bytes and datagrams the fault layer sent for it."""
+
+    action: int
+    rejoined: bool
+    sim_wire: int
+    frame: int
+    missing: int
+    dup: int
+    stale: int
+    bad: int
+    no_map: int
+    payload: tuple[int, ...]
+    spoke: tuple[int, ...]
+    datagram: tuple[int, ...]
+    sent: tuple[int, ...]
+    sent_n: tuple[int, ...]
+
+
+REPORT_HEAD = struct.Struct("!HBIIIIIII")
+"""action (u16), rejoined (u8: 0 or 1), sim_wire, frame (bits), missing, dup, stale, bad,
+no_map (u32 each)."""
+REPORT_LINK = struct.Struct("!IBHIB")
+"""Per link: payload bits (u32), spoke (u8: 0 or 1), datagram bytes (u16), sent bytes (u32),
+sent datagrams (u8)."""
+_LINK_FIELDS = ("payload", "spoke", "datagram", "sent", "sent_n")
+
+
+def report_bytes(num_links: int) -> int:
+    """Bytes of a report of ``num_links`` links."""
+    return REPORT_HEAD.size + num_links * REPORT_LINK.size
+
+
+def pack_report(report: Report) -> bytes:
+    """A report's payload (``struct.error`` for a field out of its type's range)."""
+    head = REPORT_HEAD.pack(*report[: len(Report._fields) - len(_LINK_FIELDS)])
+    links = zip(*(getattr(report, f) for f in _LINK_FIELDS), strict=True)
+    return head + b"".join(REPORT_LINK.pack(*link) for link in links)
+
+
+def parse_report(payload, num_links: int) -> Report | None:
+    """The report in ``payload``, or ``None`` when it is not one of ``num_links`` links (another
+    length, a flag that is not 0 or 1). Never raises."""
+    if not isinstance(payload, (bytes, bytearray, memoryview)) or num_links < 0:
+        return None
     payload = bytes(payload)
-    if HEADER_BYTES + len(payload) > MAX_DATAGRAM:
-        raise ValueError(f"payload of {len(payload)} bytes does not fit in one datagram")
-    crc = binascii.crc_hqx(payload, binascii.crc_hqx(head, 0xFFFF))
-    return head + crc.to_bytes(2, "big") + payload
+    if len(payload) != report_bytes(num_links):
+        return None
+    head = REPORT_HEAD.unpack_from(payload)
+    links = [
+        REPORT_LINK.unpack_from(payload, REPORT_HEAD.size + r * REPORT_LINK.size)
+        for r in range(num_links)
+    ]
+    columns = tuple(zip(*links, strict=True)) if links else ((),) * len(_LINK_FIELDS)
+    if head[1] > 1 or any(flag > 1 for flag in columns[1]):
+        return None
+    return Report(head[0], bool(head[1]), *head[2:], *columns)
 
 
-def parse(data: bytes) -> Datagram | None:
-    """The datagram in ``data``, or ``None`` when it is not one of ours (never raises)."""
-    if not isinstance(data, (bytes, bytearray, memoryview)) or len(data) < HEADER_BYTES:
+HELLO_BYTES = 4
+"""A hello's payload: the agent's process id (u32)."""
+
+
+def parse_hello(payload) -> int | None:
+    """The process id in a hello's payload, or ``None`` (never raises)."""
+    if not isinstance(payload, (bytes, bytearray, memoryview)) or len(payload) != HELLO_BYTES:
         return None
-    data = bytes(data)
-    head, crc, payload = data[: _HEAD.size], data[_HEAD.size : HEADER_BYTES], data[HEADER_BYTES:]
-    magic, vk, sender, recipient, episode, step = _HEAD.unpack(head)
-    if magic != MAGIC or vk >> 4 != VERSION or (vk & 15) not in KINDS:
-        return None
-    if binascii.crc_hqx(payload, binascii.crc_hqx(head, 0xFFFF)) != int.from_bytes(crc, "big"):
-        return None
-    return Datagram(vk & 15, sender, recipient, episode, step, payload)
+    return int.from_bytes(bytes(payload), "big")
 
 
 def map_bytes(num_links: int) -> int:

@@ -18,6 +18,13 @@ receiver waits only for frames that were sent and can call a missing one a loss.
 report of ``t - 1`` the world lacks (dead, or its action late) is marked as speaking: its
 receivers wait the deadline and count a loss if nothing came. The map is world traffic, not
 counted in the network bits (``map_bytes`` in the episode records).
+
+Every datagram is sealed with the team's secret (``wire.Auth``). The world drops, before reading
+its payload, any datagram that fails its MAC, is not addressed to the world, comes from no
+agent of the team, is not an action or hello, or whose report is not the exact layout of
+``wire.Report``; an action of another episode or of a later step is dropped too. Drops are
+counted per episode (``world_bad``). When every episode is played it tells the launcher
+(``done``) before its ``bye``s, so that an agent exiting earlier is known to be a failure.
 """
 
 from __future__ import annotations
@@ -72,11 +79,13 @@ SUMS = (
     "no_map",
     "rejoined",
     "map_bytes",
+    "world_bad",
 )
 """The counts of an episode record (``episodes.jsonl``), summed over its steps: the links'
 (``LINK_FIELDS``) and frames' counts, ``datagrams`` (MSG datagrams due, before faults),
-``missing`` (frames a map promised that did not arrive: losses), the datagrams receivers
-dropped (``dup``, ``stale``, ``bad``: garbage), ``no_map`` (steps an agent waited without a
+``missing`` (frames a map promised that did not arrive: losses), the datagrams the agents
+dropped (``dup``, ``stale``, ``bad``: garbage, forgeries and datagrams not expected),
+``world_bad`` (those the world dropped), ``no_map`` (steps an agent waited without a
 map), ``rejoined`` (restarted agents) and ``map_bytes`` (the heard maps the world sent)."""
 
 
@@ -115,6 +124,9 @@ class WorldArgs:
     """Episodes to play (the agents' ``--episodes``)."""
     out: Path
     """Folder for ``episodes.jsonl`` and ``links.csv``."""
+    secret_file: Path
+    """File of the team's secret (hex; only its owner may read it: ``wire.read_secret``), the
+    agents' ``--secret-file``."""
     listen: str = "127.0.0.1:9000"
     """Address to bind (host:port), the agents' ``--world``. Default: loopback port 9000."""
     monitor: str = ""
@@ -142,6 +154,7 @@ class World:
 
         from sparsecomm.deploy import core
 
+        self.auth = wire.Auth(wire.read_secret(args.secret_file, "WorldArgs.secret_file"))
         core.use_compile_cache(args.jax_cache)
         loaded = core.read_team(args.team, weights=False)
         self.env = loaded.env
@@ -160,6 +173,7 @@ class World:
         self.sock = wire.udp_socket(wire.parse_address(args.listen))
         args.out.mkdir(parents=True, exist_ok=True)
         self.hellos = 0
+        self.dropped = 0  # datagrams dropped since the last episode record
 
     def _send(self, data: bytes, address) -> None:
         try:
@@ -178,8 +192,18 @@ class World:
             return None
         except ConnectionError:
             return False
-        dg = wire.parse(data)
-        return dg if dg is not None and dg.recipient == wire.WORLD and dg.sender < self.k else False
+        dg = self.auth.parse(data)
+        if dg is None or dg.recipient != wire.WORLD or dg.sender >= self.k:
+            self.dropped += 1
+            return False
+        if dg.kind == wire.HELLO and wire.parse_hello(dg.payload) is not None:
+            return dg
+        if dg.kind == wire.ACT and dg.episode < self.args.episodes and dg.step < self.steps:
+            report = wire.parse_report(dg.payload, self.k - 1)
+            if report is not None:
+                return dg._replace(payload=report)
+        self.dropped += 1
+        return False
 
     def _greet(self) -> int:
         """Wait for every agent's hello; 0, or 2 when one never came."""
@@ -211,9 +235,12 @@ class World:
                 record = self._episode(b, tables)
                 eps.write(json.dumps(record) + "\n")
                 eps.flush()
+        if self.monitor is not None:
+            done = self.auth.pack(wire.DONE, wire.WORLD, wire.WORLD, self.args.episodes - 1, 0)
+            self._send(done, self.monitor)
         for _ in range(3):  # datagrams may be lost: say it thrice
             for i, address in enumerate(self.agents):
-                self._send(wire.pack(wire.BYE, wire.WORLD, i, 0, 0), address)
+                self._send(self.auth.pack(wire.BYE, wire.WORLD, i, 0, 0), address)
         return 0
 
     def _episode(self, b: int, tables) -> dict:
@@ -238,7 +265,7 @@ class World:
             obs_np = np.asarray(obs, ">f4")
             maps = heard_maps(spoke, k)
             packets = [
-                wire.pack(wire.OBS, wire.WORLD, i, b, t, wire.pack_obs(obs_np[i], maps[i]))
+                self.auth.pack(wire.OBS, wire.WORLD, i, b, t, wire.pack_obs(obs_np[i], maps[i]))
                 for i in range(k)
             ]
             sums["map_bytes"] += k * wire.map_bytes(k - 1)
@@ -246,7 +273,8 @@ class World:
             for i in range(k):
                 self._send(packets[i], self.agents[i])
             if self.monitor is not None:
-                self._send(wire.pack(wire.STEP, wire.WORLD, wire.WORLD, b, t), self.monitor)
+                step = self.auth.pack(wire.STEP, wire.WORLD, wire.WORLD, b, t)
+                self._send(step, self.monitor)
             actions = np.zeros(k, np.int32)
             answered = set()
             until = time.monotonic() + self.args.deadlines.action
@@ -260,20 +288,15 @@ class World:
                     rec["hellos"] += 1
                     self._send(packets[dg.sender], self.agents[dg.sender])
                     continue
-                if dg.kind != wire.ACT or dg.episode != b or dg.step > t:
+                if dg.episode != b or dg.step > t:  # another episode's, or a step not yet played
+                    self.dropped += 1
                     continue
-                try:
-                    report = json.loads(dg.payload)
-                except ValueError:
-                    continue
-                if not isinstance(report, dict):
-                    continue
-                late = dg.step < t
+                report, late = dg.payload, dg.step < t
                 if not late and dg.sender not in answered:
                     answered.add(dg.sender)
-                    actions[dg.sender] = _int(report.get("a", 0)) % self.env.num_actions
+                    actions[dg.sender] = report.action % self.env.num_actions
                 if not late:
-                    spoke[dg.sender] = report.get("spoke")
+                    spoke[dg.sender] = report.spoke
                 if (dg.sender, dg.step) not in counted:
                     counted.add((dg.sender, dg.step))
                     self._count(report, b, dg.step, dg.sender, sums, per_link, tables)
@@ -284,11 +307,12 @@ class World:
             rec["length"] += 1
             rec["success"] |= bool(info["success"])
             rec["group_reward"] += float(np.asarray(rewards).sum())
+        sums["world_bad"], self.dropped = self.dropped, 0
         rec.update(sums)
         rec["links"] = per_link
         return rec
 
-    def _count(self, report, b, t, sender, sums, per_link, tables) -> None:
+    def _count(self, report: wire.Report, b, t, sender, sums, per_link, tables) -> None:
         """Add one agent's report of step ``t`` (what it sent and heard) to the episode."""
         from sparsecomm import channel
 
@@ -296,11 +320,11 @@ class World:
         copies = 0
         for r, j in enumerate(recipients):
             row = {
-                "payload_bits": _at(report.get("payload"), r),
-                "spoke": _at(report.get("spoke"), r),
-                "datagram_bytes": _at(report.get("datagram"), r),
-                "sent_bytes": _at(report.get("sent"), r),
-                "sent_datagrams": _at(report.get("sent_n"), r),
+                "payload_bits": report.payload[r],
+                "spoke": report.spoke[r],
+                "datagram_bytes": report.datagram[r],
+                "sent_bytes": report.sent[r],
+                "sent_datagrams": report.sent_n[r],
             }
             tables[0].writerow([b, t, sender, int(j), *row.values()])
             link = per_link.setdefault(f"{sender}->{int(j)}", dict.fromkeys(row, 0))
@@ -308,32 +332,13 @@ class World:
                 link[name] += value
                 sums[name] += value
             copies += row["datagram_bytes"] > 0
-        frame = {
-            "sim_wire_bits": _int(report.get("sim_wire")),
-            "frame_bits": _int(report.get("frame")),
-        }
+        frame = {"sim_wire_bits": report.sim_wire, "frame_bits": report.frame}
         tables[1].writerow([b, t, sender, *frame.values(), copies])
         for name, value in frame.items():
             sums[name] += value
         sums["datagrams"] += copies
         for name in ("missing", "dup", "stale", "bad", "no_map", "rejoined"):
-            sums[name] += _int(report.get(name))
-
-
-def _at(values, r: int) -> int:
-    """``int(values[r])``, 0 for anything else (a report is never trusted)."""
-    try:
-        return _int(values[r])
-    except (IndexError, TypeError, KeyError):
-        return 0
-
-
-def _int(value) -> int:
-    """``int(value)`` of a number, 0 for anything else."""
-    try:
-        return int(value)
-    except (TypeError, ValueError, OverflowError):
-        return 0
+            sums[name] += int(getattr(report, name))
 
 
 def main(argv: list[str] | None = None) -> int:
