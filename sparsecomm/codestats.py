@@ -65,9 +65,8 @@ class FitCode:
         at_most(self, "channel.fitted.MAX_GROUP", group=MAX_GROUP)
         at_most(self, "configs.MAX_SEED: the PRNG keeps 32 bits", seed=MAX_SEED)
         alpha = self.alpha
-        if isinstance(alpha, bool) or not isinstance(alpha, int | float):
-            raise ValueError(f"FitCode.alpha must be a finite number > 0, got {alpha!r}")
-        if not (math.isfinite(alpha) and alpha > 0):
+        number = isinstance(alpha, int | float) and not isinstance(alpha, bool)
+        if not (number and math.isfinite(alpha) and alpha > 0):
             raise ValueError(f"FitCode.alpha must be a finite number > 0, got {alpha!r}")
         check_output(self, folder=False)
 

@@ -182,6 +182,9 @@ class World:
             pass
 
     def _recv(self, until: float):
+        """The next datagram for the world by ``until``: a hello, or an action whose
+        ``payload`` is its parsed ``wire.Report``; ``False`` for one dropped (counted), ``None``
+        at the deadline."""
         wait = until - time.monotonic()
         if wait <= 0:
             return None
