@@ -10,6 +10,8 @@ through the episode and through the channel, Adam step. Compile time excluded; t
     python benchmarks/train_throughput.py --mode rollout --num-envs 256 --agents 5 --max-steps 128
     python benchmarks/train_throughput.py --agents 10 --num-envs 64 --max-steps 64 \
         --goal-view ring --neighbours 3 --aggregate mean     # many agents (docs/scaling.md)
+    python benchmarks/train_throughput.py --agents 30 --num-envs 64 --max-steps 64 \
+        --goal-view ring --neighbours 2 --aggregate mean --no-live-links-only  # masked links
     XLA_FLAGS=--xla_force_host_platform_device_count=2 \
         python benchmarks/train_throughput.py --mode train --sharded   # the sweep's device mesh
 """
@@ -65,6 +67,10 @@ class Args:
     """Links only within this distance (``AgentConfig.radius``)."""
     aggregate: str = "concat"
     """The actors' inbox: ``concat``, ``mean`` or ``attention`` (``AgentConfig.aggregate``)."""
+    live_links_only: bool = True
+    """With ``neighbours`` and a ``mean`` / ``attention`` inbox, compute only the live links
+    (``AgentConfig.live_links_only``); ``--no-live-links-only``: all K (K - 1), masked (the
+    code before issue 34)."""
     sharded: bool = False
     """Train mode: split the seeds and episodes over all local devices as ``run_sweep`` does
     (``sparsecomm.sharding``); otherwise everything runs on the default device."""
@@ -77,6 +83,7 @@ def main(a: Args) -> None:
         neighbours=a.neighbours,
         radius=a.radius,
         aggregate=a.aggregate,
+        live_links_only=a.live_links_only,
     )
     cfg = RLConfig(
         env=env,
@@ -130,7 +137,8 @@ def main(a: Args) -> None:
     print(
         f"{a.mode} K={a.agents} T={a.max_steps} envs={a.num_envs} seeds={a.seeds} "
         f"remat={a.remat} shared={a.share_params} budget={a.budget} goal_view={a.goal_view} "
-        f"neighbours={a.neighbours} radius={a.radius} aggregate={a.aggregate} ({layout}): "
+        f"neighbours={a.neighbours} radius={a.radius} aggregate={a.aggregate} "
+        f"live_links_only={a.live_links_only} ({layout}): "
         f"{steps_per_call / med:,.0f} env steps/s ({a.agents * steps_per_call / med:,.0f} agent "
         f"steps/s) "
         f"(median of {a.repeats}, "

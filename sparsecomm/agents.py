@@ -170,6 +170,8 @@ class Team:
         Args: ``carry`` (B, K, H); ``obs`` (B, K, obs_dim); ``msgs`` (B, K, (K-1) C) decoded
         messages received at the previous step, by recipient (``channel.deliver``); ``heard``
         (B, K, K-1) bool, which of them arrived (routing, ``sparsecomm.scaling``; None: all).
+        ``mean`` and ``attention`` also take a gathered inbox, only the k links each recipient
+        is listed (``msgs`` (B, K, k C), ``heard`` (B, K, k); ``channel.listed``).
         ``concat`` reads ``msgs`` whole; ``mean`` and ``attention`` only the heard ones.
         Returns ``(carry, logits (B, K, A), z (B, K, K-1, C))``.
         """
@@ -177,10 +179,12 @@ class Team:
         if self.cfg.aggregate == "concat":
             x = jnp.concatenate([obs, msgs], axis=-1)
         else:
-            inbox = msgs.reshape(*msgs.shape[:-1], self.num_agents - 1, self.num_elements)
+            # the K - 1 other agents' links, or only the links a gathered layout lists
+            inbox = msgs.reshape(*msgs.shape[:-1], -1, self.num_elements)
             if heard is None:
                 heard = jnp.ones(inbox.shape[:-1], bool)
-            x = jnp.concatenate([obs, inbox_features(inbox, heard, self.cfg.aggregate)], -1)
+            others = self.num_agents - 1
+            x = jnp.concatenate([obs, inbox_features(inbox, heard, self.cfg.aggregate, others)], -1)
         if self.cfg.share_params:
             ids = jnp.broadcast_to(jnp.eye(self.num_agents), (*x.shape[:-1], self.num_agents))
             x = jnp.concatenate([x, ids], axis=-1)

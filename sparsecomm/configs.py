@@ -89,12 +89,23 @@ class AgentConfig:
     radius: float | None = None
     """Many agents: link i -> j exists only while the two are at most this far apart (> 0,
     arena units; combines with ``neighbours``). None: no limit (paper)."""
+    hears: str = "nearest"
+    """Many agents, with ``neighbours`` k: which k agents each agent hears. ``nearest``: the k
+    nearest at each step; ``ring``: agents j - 1, ..., j - k (mod K), a fixed graph, exactly
+    those who see j's goal under ``NavConfig.goal_view = "ring"`` with ``goal_view_count`` k
+    (``scaling.ring_senders``). ours: ``nearest`` (docs/scaling.md)."""
     aggregate: str = "concat"
     """How an actor reads its inbox: ``concat`` (paper: every link's message in a fixed order,
     (K - 1) C inputs), ``mean`` (the mean over the senders it heard, C inputs, plus the fraction
     heard) or ``attention`` (attention over them, ``scaling.AttentionPool``, plus the fraction
     heard); ``mean`` and ``attention`` are permutation invariant and do not grow with K.
     ours: ``concat`` (paper)."""
+    live_links_only: bool = True
+    """With ``neighbours`` k and a ``mean`` or ``attention`` inbox, on a channel that can list
+    its links (``ChannelConfig.lists_links``): the rollout computes only the K k live links,
+    listed by recipient, instead of all K (K - 1) and masking the others: the same messages,
+    bits and penalty (docs/scaling.md), at a cost that grows with the live links. False: the
+    masked computation (for comparison). ours: True."""
 
     def __post_init__(self):
         for name in ("hidden", "gru", "critic_hidden"):
@@ -107,7 +118,7 @@ class AgentConfig:
             raise _bad("AgentConfig", "message_bias_init", self.message_bias_init, "finite")
         if not math.isfinite(self.gate_bias_init):
             raise _bad("AgentConfig", "gate_bias_init", self.gate_bias_init, "finite")
-        check_agent_fields(self.neighbours, self.radius, self.aggregate)
+        check_agent_fields(self.neighbours, self.radius, self.aggregate, self.hears)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -132,17 +132,24 @@ def part_args(args: PaperTask, part: str) -> Train:
 
 
 def summarise(args: PaperTask) -> list[dict]:
-    """``summary.json``, ``frontier.png`` and ``claims.json`` from the parts found in ``out``."""
-    table = []
+    """``summary.json``, ``frontier.png`` and ``claims.json`` from the parts found in ``out``,
+    and the rows an earlier ``summary.json`` in ``results`` holds of parts not found there (a
+    part run in another session, whose run folder is gone, keeps its rows)."""
+    found = {}
     for part in PARTS:
         path = args.out / part / RESULTS
         if not path.exists():
             continue
         learner = "rl" if part.startswith("rl") else "imitation"
-        for row in wire_frontier.read_rows(path, "paper", learner):
-            table.append(row | {"part": part, "series": SERIES.get(part)})
-    if not table:
-        return table
+        rows = wire_frontier.read_rows(path, "paper", learner)
+        found[part] = [row | {"part": part, "series": SERIES.get(part)} for row in rows]
+    if not found:
+        return []
+    earlier = read_json(args.results / "summary.json") or []
+    kept = [r for r in earlier if r.get("part") in PARTS and r["part"] not in found]
+    for row in kept:
+        found.setdefault(row["part"], []).append(row)
+    table = [row for part in PARTS for row in found.get(part, [])]
     args.results.mkdir(parents=True, exist_ok=True)
     write_json(args.results / "summary.json", table)
     frontier.plot(table, args.results / "frontier.png", "The paper's task: bit budgets")

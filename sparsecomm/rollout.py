@@ -19,7 +19,10 @@ Many agents (``AgentConfig.neighbours`` / ``radius``, :mod:`sparsecomm.scaling`)
 links follow the positions of that step (``scaling.routing_mask``, a traced routing mask given
 to ``channel.live_links``); a link that does not exist sends z = 0 (the null symbol: 0 bits, 0
 penalty, no gradient) and delivers 0, and the receivers get, beside their messages, which links
-they heard (``Carry.heard``), for a ``mean`` or ``attention`` inbox.
+they heard (``Carry.heard``), for a ``mean`` or ``attention`` inbox. With ``neighbours`` k and
+such an inbox only the K k live links are computed, listed by recipient (:func:`listed_links`):
+the message head still emits every slot, but the dither, quantizer, bits, penalty and inbox, and
+their backward pass, are those of the live links alone.
 """
 
 from __future__ import annotations
@@ -148,12 +151,16 @@ def rollout(
     # Links that follow positions, or an inbox that reads which links arrived (``scaling``):
     # the receivers are told what they heard. Otherwise (the paper's team) every link exists.
     masked = team.routed or team.cfg.aggregate != "concat"
+    # With ``neighbours`` k and an inbox that reads only what it heard, only the K k live links
+    # are computed: listed by recipient (``scaling.nearest_senders``, ``channel.listed``), the
+    # same messages, bits and penalty as the masked K (K - 1) links, at a cost O(K k).
+    gathered = listed_links(team, channel_cfg) and not keep_symbols
     replay = actions is not None
     # All the step's randomness is drawn before the loop, in a few large vectorised draws.
     noise = {
         "t": jnp.arange(num_steps),
         "env": env_keys,
-        "dither": channel.link_dither(channel_cfg, chan_keys, num_steps, k),
+        "dither": None if gathered else channel.link_dither(channel_cfg, chan_keys, num_steps, k),
     }
     noise.update({"replay": actions} if replay else {"gumbel": gumbel})
     if expert is not None:
@@ -169,16 +176,17 @@ def rollout(
     # Episodes are independent: split them over the mesh's episodes axis, if there is one.
     batched = ("env", "gumbel", "replay", "dither", "mix")
     noise.update(split_episodes({n: v for n, v in noise.items() if n in batched}, axis=1))
+    heard_links = team.cfg.neighbours if gathered else k - 1  # links each recipient is listed
     init = Carry(
         env_state=state,
         obs=obs,
-        msgs=jnp.zeros((num_envs, k, (k - 1) * (c + channel_cfg.holds)), jnp.float32),
+        msgs=jnp.zeros((num_envs, k, heard_links * (c + channel_cfg.holds)), jnp.float32),
         gru=team.initial_carry(num_envs),
         expert=expert.init(num_envs) if expert is not None else None,
-        prev_symbols=jnp.zeros((num_envs, k, k - 1, c), jnp.int32),
+        prev_symbols=jnp.zeros((num_envs, k, heard_links, c), jnp.int32),
         links=None if lossy is None else lossy.init,
         last=jnp.zeros((num_envs, k, k - 1, c), jnp.float32) if keeps_last else None,
-        heard=jnp.zeros((num_envs, k, k - 1), bool) if masked else None,
+        heard=jnp.zeros((num_envs, k, heard_links), bool) if masked else None,
     )
     init = split_episodes(init._replace(expert=None), axis=0)._replace(expert=init.expert)
     chan_keys = split_episodes(chan_keys, axis=0)
@@ -204,12 +212,24 @@ def rollout(
             expert_actions = jnp.full(actions.shape, -1)
         # The channel: this step's links (None: all of them), the sender side, the noise on the
         # wire, the receiver side, and the messages routed to their recipients for step t + 1.
-        routing = None
-        if masked:
-            routing = scaling.routing_mask(state.pos, team.cfg.neighbours, team.cfg.radius)
-        live = channel.live_links(channel_cfg, routing, k, (num_envs,))
-        u = noise["dither"]
-        sent = channel.transmit(channel_cfg, z, u, chan_keys, t, carry.prev_symbols, live=live)
+        routing = senders = None
+        if gathered:  # the k links each recipient hears, and only those
+            senders, live = scaling.nearest_senders(
+                state.pos, team.cfg.neighbours, team.cfg.radius, team.cfg.hears
+            )
+            live = live if channel_cfg.speaks else jnp.zeros_like(live)
+            z = channel.listed(z, senders, 1)
+            u = channel.listed_dither(channel_cfg, chan_keys, t, senders)
+        else:
+            if masked:
+                routing = scaling.routing_mask(
+                    state.pos, team.cfg.neighbours, team.cfg.radius, team.cfg.hears
+                )
+            live = channel.live_links(channel_cfg, routing, k, (num_envs,))
+            u = noise["dither"]
+        sent = channel.transmit(
+            channel_cfg, z, u, chan_keys, t, carry.prev_symbols, live=live, senders=senders
+        )
         arrived, ok, links, lost = sent.z_hat, None, carry.links, None
         if lossy is not None:  # packets lost, late, or corrupted
             arrived, ok, links, lost = lossy.step(noise["loss"], sent, u, links)
@@ -224,7 +244,10 @@ def rollout(
             speak=sent.speak,
             silent=sent.wire_bits == 0 if channel_cfg.holds and sent.speak is None else None,
         )
-        msgs = channel.deliver(got.z_hat)
+        if gathered:  # already by recipient: its k listed links
+            msgs = got.z_hat.reshape(num_envs, k, -1)
+        else:
+            msgs = channel.deliver(got.z_hat)
         if got.news is not None:  # which messages are news, by recipient
             msgs = jnp.concatenate([msgs, channel.inbox(got.news)], -1)
         global_state = jax.vmap(env.global_state)(state)
@@ -245,7 +268,9 @@ def rollout(
             payload_bits=sent.payload_bits.sum((-2, -1)),
             wire_bits=sent.wire_bits.sum((-2, -1)),
             speaking=(sent.wire_bits > 0).sum((-2, -1)).astype(jnp.float32),
-            link_bits=channel.pairs(sent.payload_bits),
+            link_bits=channel.pairs(sent.payload_bits)
+            if senders is None
+            else channel.listed_pairs(sent.payload_bits, senders),
             msg_log_probs=sent.log_prob,
             env_states=state if keep_states else None,
             hidden=jax.lax.stop_gradient(gru) if keep_hidden else None,
@@ -265,7 +290,7 @@ def rollout(
             prev_symbols=sent.symbols,
             links=links,
             last=got.last,
-            heard=None if live is None else channel.inbox(live),
+            heard=None if live is None else live if gathered else channel.inbox(live),
         )
         return carry, record
 
@@ -273,6 +298,20 @@ def rollout(
         step = jax.checkpoint(step)
     _, traj = jax.lax.scan(step, init, noise)
     return traj
+
+
+def listed_links(team: Team, channel_cfg: ChannelConfig) -> bool:
+    """The rollout computes only the live links, listed by recipient
+    (``AgentConfig.live_links_only``): a team that hears its ``neighbours`` nearest (or its
+    ``ring``) through a ``mean`` or ``attention`` inbox, on a channel that can list
+    them (``ChannelConfig.lists_links``). Otherwise every one of the K (K - 1) links is computed
+    and the ones that do not exist are masked (the same numbers, at a cost O(K^2))."""
+    return (
+        team.cfg.live_links_only
+        and team.cfg.neighbours is not None
+        and team.cfg.aggregate != "concat"
+        and channel_cfg.lists_links
+    )
 
 
 def _batch_keys(key: jax.Array) -> dict[str, jax.Array]:

@@ -429,7 +429,21 @@ def _differences(old, new, path: str = "", now: str = "now") -> list[str]:
             where = f"{path}.{k}" if path else str(k)
             out += _differences(old.get(k, _MISSING), new.get(k, _MISSING), where, now)
         return out
+    added = ADDED_FIELDS.get(tuple(path.split(".")[-2:]), _MISSING)
+    if old is _MISSING and added is not _MISSING and _same(added, new):
+        return []  # written before the field existed: its default is what that run did
     return [] if _same(old, new) else [f"{path} (checkpoint: {old!r}, {now}: {new!r})"]
+
+
+ADDED_FIELDS = {
+    ("agent", "hears"): "nearest",
+    ("agent", "live_links_only"): True,
+    ("env", "success_rule"): "together",
+    ("env", "park_speed"): 0.3,
+}
+"""Config fields added after run folders were first written (issue 34), by (section, field),
+with the default that does what runs before them did: a checkpoint without one reads back,
+and resumes, as that default."""
 
 
 def _same(old, new) -> bool:

@@ -19,7 +19,9 @@ STEP = jax.jit(ENV.step)
 RESET = jax.jit(ENV.reset)
 
 
-def make_state(pos, vel=None, goals=None, time=0, done=False, success=False) -> NavState:
+def make_state(
+    pos, vel=None, goals=None, time=0, done=False, success=False, parked=None
+) -> NavState:
     pos = jnp.asarray(pos, jnp.float32)
     return NavState(
         pos=pos,
@@ -28,6 +30,7 @@ def make_state(pos, vel=None, goals=None, time=0, done=False, success=False) -> 
         time=jnp.asarray(time, jnp.int32),
         done=jnp.asarray(done),
         success=jnp.asarray(success),
+        parked=jnp.zeros(pos.shape[0], bool) if parked is None else jnp.asarray(parked),
     )
 
 

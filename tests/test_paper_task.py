@@ -1,11 +1,12 @@
 """``sparsecomm paper-task`` end to end with tiny budgets: every part, the rows, the verdicts."""
 
 import json
+import shutil
 
 import pytest
 
 from sparsecomm.cli import main
-from sparsecomm.paper_task import PARTS, PaperTask
+from sparsecomm.paper_task import PARTS, PaperTask, summarise
 from sparsecomm.runfolder import read_config
 
 TINY = [
@@ -49,6 +50,11 @@ def test_every_part_then_the_issues_rows_and_verdicts(tmp_path, fast_compile):
     again = json.loads((results / "summary.json").read_text())
     key = lambda r: (r["part"], str(r["budget"]), r["lam"])  # noqa: E731
     assert sorted(again, key=key) == sorted(rows, key=key)
+    # A part whose run folder is gone (run in another session) keeps its rows.
+    shutil.rmtree(out / "il_rl")
+    assert len(summarise(PaperTask(out=out, results=results))) == len(rows)
+    kept = json.loads((results / "summary.json").read_text())
+    assert sorted(kept, key=key) == sorted(rows, key=key)
 
 
 def test_bad_fields_are_refused_before_any_work(capsys):

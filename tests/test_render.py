@@ -59,6 +59,7 @@ def _state(pos, goals) -> NavState:
         time=jnp.asarray(7, jnp.int32),
         done=jnp.asarray(False),
         success=jnp.asarray(False),
+        parked=jnp.zeros(3, bool),
     )
 
 

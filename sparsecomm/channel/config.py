@@ -199,6 +199,20 @@ class ChannelConfig:
         return self.on_silence == "hold"
 
     @property
+    def lists_links(self) -> bool:
+        """It can carry a routed team's live links listed by recipient (``channel.transmit``
+        with ``senders``; docs/scaling.md): every link's cost is its own or a sum over its
+        sender's frame, and it keeps no state per link (not ``reinforced``, not a ``fitted``
+        code, not ``prices = "wire"``, not ``hold``, a clean channel)."""
+        return (
+            not self.samples_symbols
+            and self.code != "fitted"
+            and self.prices != "wire"
+            and not self.holds
+            and self.noise.clean
+        )
+
+    @property
     def signal_elements(self) -> int:
         """Elements of each link's signal ``z`` from the message head: the C message elements,
         and the link's gate (``link_gate``) last."""

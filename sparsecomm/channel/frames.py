@@ -176,11 +176,19 @@ def frame_bits(m: jax.Array, code: Code | str, check_bits: int = 32) -> jax.Arra
         (...) int32 bits, jittable: 0 when every link is silent (no frame), else
         ``8 * ceil((L + sum(link_bits)) / 8) + check_bits``.
     """
-    check_bits = check_width(check_bits)
     per_link = link_bits(m, code)
-    body = m.shape[-2] + per_link.sum(-1, dtype=jnp.int32)
-    frame = 8 * ((body + 7) // 8) + check_bits
-    return jnp.where((per_link > 0).any(-1), frame, 0).astype(jnp.int32)
+    return frame_bits_of(
+        per_link.sum(-1, dtype=jnp.int32), (per_link > 0).any(-1), m.shape[-2], check_bits
+    )
+
+
+def frame_bits_of(body, speaks, num_links: int, check_bits: int = 32) -> jax.Array:
+    """:func:`frame_bits` from a sender's sums: ``body`` (...) int, the :func:`link_bits` of its
+    links summed; ``speaks`` (...) bool, any of them is not silent; ``num_links``, its L link
+    slots (the recipient map's bits). (...) int32."""
+    check_bits = check_width(check_bits)
+    frame = 8 * ((num_links + body + 7) // 8) + check_bits
+    return jnp.where(speaks, frame, 0).astype(jnp.int32)
 
 
 def _symbols(links, code: Code) -> np.ndarray:

@@ -32,7 +32,13 @@ from sparsecomm.channel.ecc import decode as ecc_decode
 from sparsecomm.channel.ecc import encode as ecc_encode
 from sparsecomm.channel.ecc import wire_bits as ecc_bits
 from sparsecomm.channel.fitted import FittedCode
-from sparsecomm.channel.frames import decode_frame, encode_frame, frame_bits, link_bits
+from sparsecomm.channel.frames import (
+    decode_frame,
+    encode_frame,
+    frame_bits,
+    frame_bits_of,
+    link_bits,
+)
 from sparsecomm.channel.noise import ON_DROP
 from sparsecomm.channel.permuted import packet_bits as permuted_bits
 from sparsecomm.channel.quantizer import (
@@ -56,22 +62,26 @@ def key_batch_shape(key: jax.Array) -> tuple[int, ...]:
     return key.shape[:-1]
 
 
-def over_links(fn, key: jax.Array, t, sender, recipient, *arrays):
+def over_links(fn, key: jax.Array, t, sender, recipient, *arrays, per_entry: bool = False):
     """``fn(dither_key(key, t, i, j), *link_arrays)`` for every link i -> j of every batch
     entry, in one flat ``vmap`` (nested ones compile ~3x slower).
 
     ``key``: one key, or keys of batch shape ``kb``; ``t``: steps whose shape broadcasts with
     ``kb`` into the batch shape ``B``; ``sender``, ``recipient``: integer arrays (may be traced)
-    of one link shape ``L``; each of ``arrays`` is ``(*B, *L, ...)``. Returns ``(*B, *L, ...)``.
+    of one link shape ``L``, or with ``per_entry`` each batch entry's own links, ``(*B, *L)``
+    (a routed team's live links, ``sparsecomm.scaling.nearest_senders``); each of ``arrays`` is
+    ``(*B, *L, ...)``. Returns ``(*B, *L, ...)``.
     """
     kb = key_batch_shape(key)
     t = jnp.asarray(t)
     batch = tuple(np.broadcast_shapes(kb, t.shape))
     sender, recipient = jnp.asarray(sender), jnp.asarray(recipient)
     links = tuple(np.broadcast_shapes(sender.shape, recipient.shape))
+    if per_entry:
+        links = links[len(batch) :]
     n, m = math.prod(batch), math.prod(links)
-    i = jnp.tile(jnp.broadcast_to(sender, links).reshape(m), n)
-    j = jnp.tile(jnp.broadcast_to(recipient, links).reshape(m), n)
+    i = jnp.broadcast_to(sender, (*batch, *links)).reshape(n * m)
+    j = jnp.broadcast_to(recipient, (*batch, *links)).reshape(n * m)
     steps = jnp.repeat(jnp.broadcast_to(t, batch).reshape(n), m)
     flat = [a.reshape(n * m, *a.shape[len(batch) + len(links) :]) for a in arrays]
     if kb:  # one key per batch entry, broadcast to each of its links
@@ -89,11 +99,24 @@ def over_links(fn, key: jax.Array, t, sender, recipient, *arrays):
     return out.reshape(*batch, *links, *out.shape[1:])
 
 
-def dither_links(key: jax.Array, t, sender, recipient, num_elements: int) -> jax.Array:
+def dither_links(
+    key: jax.Array, t, sender, recipient, num_elements: int, per_entry: bool = False
+) -> jax.Array:
     """The dither of links ``sender -> recipient`` at steps ``t``: ``(*B, *L, C)`` with ``B``
     the batch of ``key`` and ``t``, ``L`` that of ``sender`` and ``recipient``
     (:func:`over_links`); each link's C values drawn from ``dither_key(key, t, i, j)``."""
-    return over_links(lambda k: dither(k, (num_elements,)), key, t, sender, recipient)
+    draw = lambda k: dither(k, (num_elements,))  # noqa: E731
+    return over_links(draw, key, t, sender, recipient, per_entry=per_entry)
+
+
+def listed_dither(cfg: ChannelConfig, keys: jax.Array, t, senders: jax.Array):
+    """The dither of a routed team's live links listed by recipient at step ``t``: ``senders``
+    (B, K, k) (:func:`sparsecomm.scaling.nearest_senders`) -> (B, K, k, C'), each link's values
+    those :func:`step_dither` draws for it. ``None`` unless the channel quantizes."""
+    if not cfg.quantizes:
+        return None
+    recipients = jnp.broadcast_to(jnp.arange(senders.shape[-2])[:, None], senders.shape)
+    return dither_links(keys, t, senders, recipients, cfg.signal_elements, per_entry=True)
 
 
 def _check_dither_range(num_steps: int, num_agents: int) -> None:
@@ -174,6 +197,7 @@ def transmit(
     *,
     live=None,
     code: Code | FittedCode | None = None,
+    senders=None,
 ) -> Sent:
     """The sender side: put every link's signal on the channel, in any mode, and count its cost.
 
@@ -189,10 +213,19 @@ def transmit(
       live: (..., K, K-1) bool, the links that exist (:func:`live_links`); the others send
         z = 0 (the null symbol, no gradient) and cost and deliver nothing. Default: all.
       code: count bits in this code instead of ``cfg.code_obj`` (the plug-in layer's).
+      senders: (..., K, k) int, a routed team's live links **listed by recipient** (link
+        ``senders[..., j, r] -> j``; ``sparsecomm.scaling.nearest_senders``): then every link
+        array is (..., K, k, ...) in that order, each sender's frame is summed over the links
+        it has in the list, and ``cfg.lists_links`` must hold. Default: the sender-slot layout.
 
     Returns:
       :class:`Sent`.
     """
+    if senders is not None and not cfg.lists_links:
+        raise ValueError(
+            "transmit(senders=...) needs a channel whose links keep no state and whose costs "
+            "are the links' own (ChannelConfig.lists_links)"
+        )
     code = cfg.code_obj if code is None else code
     lead, c = z.shape[:-1], z.shape[-1]
     speak = None
@@ -213,7 +246,7 @@ def transmit(
     if cfg.sends_values:
         m, z_hat, log_prob = jnp.zeros(z.shape, jnp.int32), z, no_log_prob
         payload = jnp.full(lead, 32.0 * c)
-        wire, frame = _framed_bits(cfg, z, code)
+        wire, frame = _framed_bits(cfg, z, code, senders)
         penalty = jnp.zeros(lead, jnp.float32)
     else:
         if cfg.samples_symbols:
@@ -242,7 +275,7 @@ def transmit(
         elif isinstance(code, FittedCode):  # a fitted code's links send their own packets
             wire = ecc_bits(wire_bits(m, code, prev=prev), cfg.ecc).astype(jnp.float32)
         else:
-            wire, frame = _framed_bits(cfg, m, code)
+            wire, frame = _framed_bits(cfg, m, code, senders)
         if cfg.samples_symbols:
             penalty = cfg.link_penalty(z, code, live)
     if live is not None:
@@ -252,17 +285,34 @@ def transmit(
     return Sent(m.astype(jnp.int32), z_hat, penalty, payload, wire, log_prob, live, speak, frame)
 
 
-def _framed_bits(cfg: ChannelConfig, m: jax.Array, code: Code):
+def _framed_bits(cfg: ChannelConfig, m: jax.Array, code: Code, senders=None):
     """Each link's share of its sender's frame and the frame each speaking link's datagram
     carries (``Sent.wire_bits``, ``Sent.frame_bits``), from symbols (or float32 values) ``m``
-    (..., K, K-1, C): exactly the frames ``encode_sender`` writes."""
-    body = link_bits(m, code).astype(jnp.float32)  # (..., K, K-1)
-    frame = ecc_bits(frame_bits(m, code, cfg.check_bits), cfg.ecc).astype(jnp.float32)
+    (..., K, K-1, C) by sender slot, or (..., K, k, C) listed by recipient with ``senders``
+    (``transmit``): exactly the frames ``encode_sender`` writes."""
+    body = link_bits(m, code)  # (..., K, L) int32
+    if senders is None:  # each row is one sender's links
+        frame = frame_bits(m, code, cfg.check_bits)
+        total, count = body.sum(-1), (body > 0).sum(-1)
+    else:  # sum each sender's listed links, then hand every link its sender's sums
+        k = m.shape[-3]
+        owner = jax.nn.one_hot(senders, k, dtype=jnp.int32)  # (..., K, k, K senders)
+        total = jnp.einsum("...jr,...jrs->...s", body, owner)
+        count = jnp.einsum("...jr,...jrs->...s", (body > 0).astype(jnp.int32), owner)
+        frame = frame_bits_of(total, count > 0, k - 1, cfg.check_bits)
+    frame = ecc_bits(frame, cfg.ecc).astype(jnp.float32)
+    if senders is None:  # (..., K) -> (..., K, 1): over the row's links
+        frame, total, count = frame[..., None], total[..., None], count[..., None]
+    else:  # (..., K) by sender -> (..., K, k): each listed link's sender's
+        flat = senders.reshape(*senders.shape[:-2], -1)
+        frame, total, count = (
+            jnp.take_along_axis(x, flat, -1).reshape(senders.shape) for x in (frame, total, count)
+        )
+    body = body.astype(jnp.float32)
     speaking = body > 0
-    count = jnp.maximum(speaking.sum(-1, keepdims=True), 1)
-    overhead = (frame[..., None] - body.sum(-1, keepdims=True)) / count
+    overhead = (frame - total) / jnp.maximum(count, 1)
     share = jnp.where(speaking, body + overhead, 0.0)
-    return share, jnp.where(speaking, frame[..., None], 0.0)
+    return share, jnp.where(speaking, frame, 0.0)
 
 
 def _sample_symbols(cfg: ChannelConfig, keys: jax.Array, t, z: jax.Array):

@@ -9,6 +9,13 @@ link comes from ``others(K)[j, s]``) and :func:`deliver` flattens it to the acto
 ``(..., K, (K-1) C)``. A deployed agent holds one row of it: its own K - 1 sender slots, or as a
 receiver its K - 1 incoming links.
 
+A routed team that hears only its k nearest (``AgentConfig.neighbours``) may instead **list** its
+live links by recipient, ``(..., K, k, ...)``: entry ``[j, r]`` is the link ``senders[j, r] ->
+j`` (:func:`listed` from the sender-slot layout, :func:`listed_pairs` to the pair layout), so the
+rollout computes K k links, not K (K - 1). ``channel.transmit`` takes that listing
+(``senders``) and counts each sender's frame over the links it has in it: the same numbers on
+every live link (``tests/test_scaling.py``).
+
 Routing. Which links exist is one boolean array by sender and recipient, ``mask[..., i, j]``:
 a static :class:`Routing` (hashable, a jit static argument) and a traced mask (links that follow
 the agents' positions, ``sparsecomm.scaling.routing_mask``) are two inputs of
@@ -74,6 +81,32 @@ def inbox(by_slot: jax.Array, trailing: int = 0) -> jax.Array:
     the link from ``others(K)[j, s]`` to j."""
     sender, slot = link_tables(by_slot.shape[by_slot.ndim - trailing - 2])
     return by_slot[_at(trailing, sender, slot)]
+
+
+def listed(by_slot: jax.Array, senders: jax.Array, trailing: int = 0) -> jax.Array:
+    """(..., K, K-1, *e) by sender slot -> (..., K, k, *e) listed by recipient: entry ``[...,
+    j, r]`` is the link ``senders[..., j, r] -> j`` (``senders`` (..., K, k) int, the same
+    leading axes; ``sparsecomm.scaling.nearest_senders``)."""
+    k = senders.shape[-2]
+    recipient = jnp.arange(k)[:, None]
+    slot = jnp.where(recipient > senders, recipient - 1, recipient)
+    lead = senders.shape[:-2]
+    flat = by_slot.reshape(-1, *by_slot.shape[len(lead) :])  # (N, K, K-1, *e)
+    rows = jnp.arange(flat.shape[0])[:, None, None]
+    out = flat[rows, senders.reshape(-1, k, senders.shape[-1]), slot.reshape(-1, k, slot.shape[-1])]
+    return out.reshape(*lead, *out.shape[1:])
+
+
+def listed_pairs(by_listing: jax.Array, senders: jax.Array) -> jax.Array:
+    """(..., K, k) listed by recipient -> (..., K, K) by sender and recipient (the layout of
+    :func:`pairs`), zero where no listed link is."""
+    k = senders.shape[-2]
+    lead = senders.shape[:-2]
+    flat_s = senders.reshape(-1, k, senders.shape[-1])
+    rows = jnp.arange(flat_s.shape[0])[:, None, None]
+    out = jnp.zeros((flat_s.shape[0], k, k), by_listing.dtype)
+    out = out.at[rows, flat_s, jnp.arange(k)[:, None]].set(by_listing.reshape(flat_s.shape))
+    return out.reshape(*lead, k, k)
 
 
 def deliver(z_hat: jax.Array) -> jax.Array:

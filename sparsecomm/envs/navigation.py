@@ -37,6 +37,11 @@ Step order, from a state at time ``t`` with goals ``g_t``:
    ``t + 1``. Goals are frozen once the episode is over, so a terminal state shows the goals the
    success was scored against.
 
+Under ``success_rule = "each"`` (the many-agent task, docs/scaling.md) a parked agent's ``vel'``
+is 0 in step 2; in step 4 an agent parks when ``in_radius_i`` and ``||vel'_i|| < park_speed``, a
+parked agent counts as ``in_radius`` from then on, and ``success = all(parked)``; in step 7 a
+parked agent's goal does not jump.
+
 There is no auto-reset. Stepping a state that is already done is allowed (the physics keeps
 running and rewards keep being computed; ``done`` and ``success`` stay ``True``): rollouts mask
 everything after the first ``done`` themselves.
@@ -59,6 +64,9 @@ from flax import struct
 
 GOAL_VIEWS = ("others", "ring")
 """The rules of who observes whose goal (``NavConfig.goal_view``)."""
+
+SUCCESS_RULES = ("together", "each")
+"""When the team succeeds (``NavConfig.success_rule``)."""
 
 NUM_ACTIONS = 5
 """Number of discrete actions: no force, up, down, left, right."""
@@ -123,6 +131,21 @@ class NavConfig:
     """``goal_view = ring`` only: how many goals each agent sees, an integer in [1, K - 1].
     ours: 1 (each goal is known to exactly one other agent)."""
 
+    success_rule: str = "together"
+    """When the team succeeds. ``together``: all K agents inside their radius at the same step
+    (paper). ``each``: an agent *parks* at the first step it is inside its radius at a speed
+    below ``park_speed``: it stops there (velocity 0, its actions ignored, its goal frozen,
+    its individual term ``in_radius_bonus`` from then on; it still observes and talks), and the
+    team succeeds when every agent has parked. Each agent's part of the task is then the same
+    at K = 3 and K = 30 (ours, for the many-agent task of docs/scaling.md: with ``together`` a
+    jump of any of the K goals undoes the others' arrival, docs/scaling.md)."""
+
+    park_speed: float = 0.3
+    """``success_rule = each`` only: an agent parks only when its speed is below this, in
+    units/s (>= 0; 0 never parks). ours: a quarter of the default terminal speed (1.2 units/s),
+    so a team cannot park by sweeping the arena at full speed without knowing its goals; the
+    oracle brakes to it in 2-3 steps (docs/scaling.md)."""
+
     def __post_init__(self) -> None:
         self.validate()
 
@@ -133,15 +156,18 @@ class NavConfig:
             return ValueError(f"NavConfig.{name} must be {allowed}, got {getattr(self, name)!r}")
 
         integers = ("num_agents", "max_steps", "goal_view_count")
+        words = ("goal_view", "success_rule")
         for name in integers:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | np.integer):
                 raise bad(name, "an integer")
         if self.goal_view not in GOAL_VIEWS:
             raise bad("goal_view", f"one of {GOAL_VIEWS}")
+        if self.success_rule not in SUCCESS_RULES:
+            raise bad("success_rule", f"one of {SUCCESS_RULES}")
         for field in dataclasses.fields(self):
             value = getattr(self, field.name)
-            if field.name in (*integers, "goal_view"):
+            if field.name in (*integers, *words):
                 continue
             if isinstance(value, bool) or not isinstance(value, int | float | np.number):
                 raise bad(field.name, "a real number")
@@ -160,6 +186,8 @@ class NavConfig:
             raise bad("position_limit", f">= arena_half_width ({self.arena_half_width})")
         if not 0.0 <= self.damping < 1.0:
             raise bad("damping", "in [0, 1)")
+        if self.park_speed < 0.0:
+            raise bad("park_speed", ">= 0")
         if not 1 <= self.goal_view_count <= self.num_agents - 1:
             raise bad("goal_view_count", f"in [1, {self.num_agents - 1}] (K - 1)")
 
@@ -187,6 +215,9 @@ class NavState:
     """() bool, the episode is over (success or time limit); sticky."""
     success: jax.Array
     """() bool, the episode ended in success; sticky."""
+    parked: jax.Array
+    """(K,) bool, the agent has parked at its goal (``success_rule = each``; always False
+    under ``together``); sticky."""
 
 
 def other_agent_index(num_agents: int) -> np.ndarray:
@@ -249,6 +280,7 @@ class NavigationEnv:
             time=jnp.zeros((), jnp.int32),
             done=jnp.zeros((), bool),
             success=jnp.zeros((), bool),
+            parked=jnp.zeros((k,), bool),
         )
         return self.get_obs(state), state
 
@@ -276,18 +308,29 @@ class NavigationEnv:
         indexing does; nothing can raise inside jit). Returns ``(obs, state, rewards, dones,
         info)`` with ``rewards`` (K,) float32 in the paper's units, ``dones`` (K,) bool (all
         equal to the new ``state.done``), and ``info``
-        holding ``success`` (() bool, all agents within the radius this step), ``in_radius`` (K,)
+        holding ``success`` (() bool, all agents within the radius this step, or all parked:
+        ``success_rule``), ``in_radius`` (K,)
         bool, ``dist`` (K,) float32 and ``goal_jumped`` (K,) bool.
         """
         cfg = self.config
         k = cfg.num_agents
         direction = self._directions[jnp.asarray(actions, jnp.int32)]
         vel = (1.0 - cfg.damping) * state.vel + (cfg.accel * cfg.dt) * direction
+        each = cfg.success_rule == "each"
+        if each:  # a parked agent stays where it stopped
+            vel = jnp.where(state.parked[:, None], 0.0, vel)
         pos = jnp.clip(state.pos + cfg.dt * vel, -cfg.position_limit, cfg.position_limit)
 
         dist = jnp.linalg.norm(pos - state.goals, axis=-1)
         in_radius = dist < cfg.success_radius
-        success = jnp.all(in_radius)
+        parked = state.parked
+        if each:
+            slow = jnp.linalg.norm(vel, axis=-1) < cfg.park_speed
+            parked = parked | (in_radius & slow & ~state.done)
+            in_radius = in_radius | parked
+            success = jnp.all(parked)
+        else:
+            success = jnp.all(in_radius)
         individual = jnp.where(in_radius, jnp.float32(cfg.in_radius_bonus), -(dist**2))
         shaped = cfg.individual_weight * individual + cfg.group_weight * jnp.sum(individual)
         rewards = jnp.where(success, jnp.float32(cfg.success_bonus), shaped).astype(jnp.float32)
@@ -296,7 +339,7 @@ class NavigationEnv:
         done = state.done | success | (time >= cfg.max_steps)
 
         key_jump, key_goal = jax.random.split(key)
-        jumped = (jax.random.uniform(key_jump, (k,)) < cfg.goal_jump_prob) & ~done
+        jumped = (jax.random.uniform(key_jump, (k,)) < cfg.goal_jump_prob) & ~done & ~parked
         goals = jnp.where(jumped[:, None], self._uniform_points(key_goal, (k,)), state.goals)
 
         new_state = NavState(
@@ -306,6 +349,7 @@ class NavigationEnv:
             time=time,
             done=done,
             success=state.success | success,
+            parked=parked,
         )
         info = {
             "success": success,
