@@ -421,3 +421,23 @@ def test_kill_9_during_a_chunk_then_resume_gives_the_same_run_and_logs(tmp_path)
     assert all(float(a[1]) <= float(b[1]) for a, b in zip(wall[:-1], wall[1:], strict=True))
     shown = _tb_scalars(out / "tensorboard")
     assert shown and all(sorted(v) == sorted(set(v)) and len(v) == 40 for v in shown.values())
+
+
+def test_a_checkpoint_written_before_a_field_existed_reads_back_as_its_default():
+    """Run folders written before issue 34's fields (``agent.hears``, ``env.success_rule``,
+    ...) read back and resume as those fields' defaults, and only as them."""
+    import copy
+    import dataclasses
+
+    from sparsecomm.configs import AgentConfig, RLConfig
+    from sparsecomm.sweep import ADDED_FIELDS, SweepSpec, differences, sweep_record
+
+    record = sweep_record("train", RLConfig(), SweepSpec(seeds=2))
+    old = copy.deepcopy(record)
+    for section, field in ADDED_FIELDS:
+        del old["config"][section][field]
+    assert differences(old, record) == []
+    ring = RLConfig(agent=AgentConfig(neighbours=1, hears="ring"))
+    ring = dataclasses.replace(ring, env=dataclasses.replace(ring.env, num_agents=3))
+    diffs = differences(old, sweep_record("train", ring, SweepSpec(seeds=2)))
+    assert any(d.startswith("config.agent.hears (checkpoint: missing") for d in diffs)
