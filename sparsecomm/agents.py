@@ -111,22 +111,31 @@ class Team:
         """``num_elements``: C, the message elements of each link; ``gate_elements``: the
         link's gate the head emits beside them (``ChannelConfig.link_gate``); ``news_inputs``:
         each receiver also reads, per link, whether its message is news
-        (``ChannelConfig.on_silence = "hold"``; the ``concat`` inbox only)."""
+        (``ChannelConfig.on_silence = "hold"``; the ``concat`` inbox only), and with
+        ``AgentConfig.reads_sent`` each sender the last message each of its links delivered."""
         check_fits(cfg, num_agents)
         if news_inputs and cfg.aggregate != "concat":
             raise ValueError(
                 "ChannelConfig.on_silence 'hold' needs AgentConfig.aggregate 'concat', got "
                 f"{cfg.aggregate!r}"
             )
+        if cfg.reads_sent and not news_inputs:
+            raise ValueError(
+                "AgentConfig.reads_sent needs ChannelConfig.on_silence 'hold' (a held message "
+                "to read back), got on_silence 'null'"
+            )
         self.cfg = cfg
         self.num_agents = num_agents
         self.num_actions = num_actions
         self.num_elements = num_elements
         self.news_inputs = news_inputs
+        self.reads_sent = cfg.reads_sent
+        """Each actor's inbox ends with the last message each of its own links delivered."""
         self.routed = cfg.neighbours is not None or cfg.radius is not None
         """Links follow the agents' positions (``sparsecomm.scaling.routing_mask``)."""
+        links_in = num_elements + news_inputs + num_elements * cfg.reads_sent
         inbox_sizes = {
-            "concat": (num_agents - 1) * (num_elements + news_inputs),  # every link's message
+            "concat": (num_agents - 1) * links_in,  # every link's message, and its own links'
             "mean": num_elements + 1,  # their mean and the fraction of the team heard
             "attention": 1,  # the fraction heard; the attention's pool is added in the actor
         }
@@ -168,7 +177,9 @@ class Team:
         """One step of every actor.
 
         Args: ``carry`` (B, K, H); ``obs`` (B, K, obs_dim); ``msgs`` (B, K, (K-1) C) decoded
-        messages received at the previous step, by recipient (``channel.deliver``); ``heard``
+        messages received at the previous step, by recipient (``channel.deliver``; under
+        ``on_silence = "hold"`` then K-1 news inputs, and with ``reads_sent`` the (K-1) C
+        messages the agent's own links last delivered, by slot: :attr:`msg_in` in all); ``heard``
         (B, K, K-1) bool, which of them arrived (routing, ``sparsecomm.scaling``; None: all).
         ``mean`` and ``attention`` also take a gathered inbox, only the k links each recipient
         is listed (``msgs`` (B, K, k C), ``heard`` (B, K, k); ``channel.listed``).

@@ -106,6 +106,13 @@ class AgentConfig:
     listed by recipient, instead of all K (K - 1) and masking the others: the same messages,
     bits and penalty (docs/scaling.md), at a cost that grows with the live links. False: the
     masked computation (for comparison). ours: True."""
+    reads_sent: bool = False
+    """Under ``ChannelConfig.on_silence = "hold"``: each actor also reads, per link it sends on,
+    the last message that link delivered (what its recipient holds on a clean channel: the
+    reconstruction of the last step it spoke, zeros before), so that a sender can tell whether
+    its recipient already knows what it would say. Without it a sender never learns whether its
+    gate opened. Needs ``on_silence 'hold'`` and the ``concat`` inbox. ours: False, what runs
+    before this field did (docs/wire.md measures both)."""
 
     def __post_init__(self):
         for name in ("hidden", "gru", "critic_hidden"):
@@ -181,6 +188,14 @@ class LearnerConfig:
             "lr_decay_steps": (
                 self.lr_decay_steps >= (0 if self.lr_final is None else 1),
                 ">= 1 when lr_final is set, else >= 0",
+            ),
+            "agent.reads_sent": (
+                not self.agent.reads_sent or self.channel.holds,
+                "False unless channel.on_silence is 'hold'",
+            ),
+            "budget.decoupled": (  # its penalty step reprices the head's gates, not the news'
+                not self.budget.decoupled or self.channel.news_margin is None,
+                "False with channel.news_margin set",
             ),
         }
 
@@ -418,9 +433,12 @@ succeeds in every one of 4000 episodes (11.6 steps on average); the default lear
 episodes per update reaches success >= 0.9 on 19 of 20 seeds in 600 updates (2.5M env steps per
 run, docs/budget.md)."""
 
-SILENT_CHANNEL = ChannelConfig(prices="wire", link_gate=True, on_silence="hold", check_bits=16)
+SILENT_CHANNEL = ChannelConfig(
+    prices="wire", link_gate=True, on_silence="hold", check_bits=16, news_margin=0.1
+)
 """The ``silent`` preset's channel: the penalty and the budget price each sender's expected
-frame bits, each link has a gate, a silent link holds its last message (docs/wire.md)."""
+frame bits, each link has a gate that news also opens (a gap of 0.1 to 0.2 between what it would
+say and what its recipient holds), a silent link holds its last message (docs/wire.md)."""
 
 PRESETS: dict[str, dict[str, RLConfig | ILConfig]] = {
     "small": {

@@ -92,6 +92,7 @@ class Carry(NamedTuple):
     links: Any  # channel.lossy.LinkState of the noisy links (None on a clean channel)
     last: Any  # (B, K, K-1, C) each link's last good message (None unless a rule reads it)
     heard: Any  # (B, K, K-1) bool which links each recipient heard (None: all, the full team)
+    sent: Any  # (B, K, K-1, C) what each link last delivered, by sender (None: not read back)
 
 
 def rollout(
@@ -177,16 +178,19 @@ def rollout(
     batched = ("env", "gumbel", "replay", "dither", "mix")
     noise.update(split_episodes({n: v for n, v in noise.items() if n in batched}, axis=1))
     heard_links = team.cfg.neighbours if gathered else k - 1  # links each recipient is listed
+    sent_in = (k - 1) * c if team.reads_sent else 0  # what the agent's own links last delivered
+    keeps_sent = team.reads_sent or channel_cfg.news_margin is not None
     init = Carry(
         env_state=state,
         obs=obs,
-        msgs=jnp.zeros((num_envs, k, heard_links * (c + channel_cfg.holds)), jnp.float32),
+        msgs=jnp.zeros((num_envs, k, heard_links * (c + channel_cfg.holds) + sent_in), jnp.float32),
         gru=team.initial_carry(num_envs),
         expert=expert.init(num_envs) if expert is not None else None,
         prev_symbols=jnp.zeros((num_envs, k, heard_links, c), jnp.int32),
         links=None if lossy is None else lossy.init,
         last=jnp.zeros((num_envs, k, k - 1, c), jnp.float32) if keeps_last else None,
         heard=jnp.zeros((num_envs, k, heard_links), bool) if masked else None,
+        sent=jnp.zeros((num_envs, k, k - 1, c), jnp.float32) if keeps_sent else None,
     )
     init = split_episodes(init._replace(expert=None), axis=0)._replace(expert=init.expert)
     chan_keys = split_episodes(chan_keys, axis=0)
@@ -227,6 +231,8 @@ def rollout(
                 )
             live = channel.live_links(channel_cfg, routing, k, (num_envs,))
             u = noise["dither"]
+            if keeps_sent:  # a link with news opens its gate (``news_margin``)
+                z = channel.news_gate(channel_cfg, z, carry.sent)
         sent = channel.transmit(
             channel_cfg, z, u, chan_keys, t, carry.prev_symbols, live=live, senders=senders
         )
@@ -250,6 +256,12 @@ def rollout(
             msgs = channel.deliver(got.z_hat)
         if got.news is not None:  # which messages are news, by recipient
             msgs = jnp.concatenate([msgs, channel.inbox(got.news)], -1)
+        own = carry.sent  # what each link last delivered, by sender
+        if keeps_sent:
+            own = jnp.where((sent.wire_bits > 0)[..., None], sent.z_hat, own)
+            own = jax.lax.stop_gradient(own)
+        if team.reads_sent:  # each sender reads it back
+            msgs = jnp.concatenate([msgs, own.reshape(num_envs, k, -1)], -1)
         global_state = jax.vmap(env.global_state)(state)
         valid = ~state.done
         next_obs, next_state, rewards, dones, info = jax.vmap(env.step)(
@@ -291,6 +303,7 @@ def rollout(
             links=links,
             last=got.last,
             heard=None if live is None else live if gathered else channel.inbox(live),
+            sent=own,
         )
         return carry, record
 

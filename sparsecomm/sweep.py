@@ -440,8 +440,10 @@ ADDED_FIELDS = {
     ("agent", "live_links_only"): True,
     ("env", "success_rule"): "together",
     ("env", "park_speed"): 0.3,
+    ("agent", "reads_sent"): False,
+    ("channel", "news_margin"): None,
 }
-"""Config fields added after run folders were first written (issue 34), by (section, field),
+"""Config fields added after run folders were first written (issues 31, 34), by (section, field),
 with the default that does what runs before them did: a checkpoint without one reads back,
 and resumes, as that default."""
 

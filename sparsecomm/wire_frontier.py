@@ -22,7 +22,9 @@ Reads the evaluations of trained sweeps (a run folder's ``results.json``, or the
   and the seconds of training of the whole sweep (one program for every group, compiling
   included: the folder's ``wall.csv``) at which the group's mean training success over its
   seeds, a moving average over :data:`WINDOW` updates, first exceeds 0.95 (``null``: never, or
-  a folder without the logs).
+  a folder without the logs). ``check_bits``, ``link_gate``, ``on_silence`` and
+  ``news_margin`` say the channel; a row replaces an earlier one of the same task, learner,
+  counts, budget, lambda and ``news_margin`` (:func:`row_key`).
 - ``frontier.png``: success against wire bits per step, and the share of link-steps that speak.
 
 Command line (the numbers of docs/wire.md)::
@@ -128,10 +130,18 @@ def rows(results: dict, config, task: str, learner: str, times: dict | None = No
         row["check_bits"] = config.channel.check_bits
         row["link_gate"] = config.channel.link_gate
         row["on_silence"] = config.channel.on_silence
+        row["news_margin"] = config.channel.news_margin
         steps, wall_s = (times or {}).get((budget, lam), (None, None))
         row["env_steps_to_095"], row["wall_s_to_095"] = steps, wall_s
         out.append(row)
     return out
+
+
+def row_key(row: dict) -> tuple:
+    """What a row of ``summary.json`` stands for: a newer row of the same key replaces it. A
+    row written before ``news_margin`` existed has none (the learned gate alone)."""
+    fields = ("task", "learner", "counts", "budget", "lam")
+    return (*(row[f] for f in fields), row.get("news_margin"))
 
 
 def read_rows(path: str | Path, task: str, learner: str) -> list[dict]:
@@ -167,6 +177,8 @@ def plot(table: list[dict], out_png: str | Path) -> Path:
     for r in table:
         name = "λ 0" if r["budget"] is None else f"{r['counts']} {r['budget']:g}"
         name = f"{r['task']}, {r['learner']}: {name}"
+        if r.get("news_margin") is not None:
+            name += " (news)"
         x, y, s = r["wire_bits"], r["success"], r["speaking_fraction"]
         axes[0].errorbar(
             x[0], y[0], xerr=[[x[0] - x[1]], [x[2] - x[0]]], yerr=[[y[0] - y[1]], [y[2] - y[0]]],
@@ -217,9 +229,8 @@ def main(argv: list[str] | None = None) -> None:
         for r in new:
             if r["budget"] == want:
                 r["deployed"] = deployed(json.loads(Path(report).read_text()))
-    keys = {(r["task"], r["learner"], r["counts"], r["budget"], r["lam"]) for r in new}
-    table = [r for r in table if (r["task"], r["learner"], r["counts"], r["budget"], r["lam"])
-             not in keys] + new  # fmt: skip
+    keys = {row_key(r) for r in new}
+    table = [r for r in table if row_key(r) not in keys] + new
     write_json(summary, table)
     plot(table, out / "frontier.png")
     for r in new:

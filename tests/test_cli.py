@@ -161,7 +161,7 @@ def test_the_silent_preset_prices_the_wire_and_holds_silent_links():
     cmd = parse(["train", "--preset", "silent", "--config.num-updates", "5"])
     channel = cmd.config.channel
     assert (channel.prices, channel.link_gate, channel.on_silence) == ("wire", True, "hold")
-    assert channel.check_bits == 16 and channel.deployable
+    assert channel.check_bits == 16 and channel.deployable and channel.news_margin == 0.1
     assert cmd.config.budget.bits == 24.0 and cmd.config.budget.relief_floor == 0.5
     assert str(cmd.out) == "runs/silent" and cmd.config.num_updates == 5
     assert parse(["imitate", "--preset", "silent"]).config.channel == channel

@@ -16,7 +16,7 @@ import pytest
 from flax import serialization
 
 from sparsecomm import channel
-from sparsecomm.configs import RLConfig, to_dict
+from sparsecomm.configs import AgentConfig, RLConfig, to_dict
 from sparsecomm.deploy import core, wire
 from sparsecomm.deploy.args import Deploy
 from sparsecomm.deploy.faults import Deadlines, Faults, inject
@@ -402,16 +402,20 @@ def test_an_open_gate_saying_nothing_is_silence():
     np.testing.assert_array_equal(kept, want.last)
 
 
-def test_core_replays_the_rollout_of_a_gated_holding_team(tmp_path):
+@pytest.mark.parametrize("reads_sent, news_margin", [(False, None), (True, None), (False, 0.1)])
+def test_core_replays_the_rollout_of_a_gated_holding_team(tmp_path, reads_sent, news_margin):
     """A deployment without sockets: every agent steps with ``core.agent_step``, sends its frame
     (``channel.encode_sender``; none when silent), every receiver takes its row of each frame
     (``channel.decode_sender``), treats a sender that did not speak to it as silence and
     rebuilds with ``core.receive``. Under gates and ``hold`` it plays the rollout's episodes:
-    the same symbols and actions at every step, the frames' bits the library's count."""
+    the same symbols and actions at every step, the frames' bits the library's count; with
+    ``reads_sent`` each sender reads back what its links last delivered, which is what their
+    recipients hold, and with ``news_margin`` a link with news opens its gate."""
     from sparsecomm.rollout import rollout
 
-    cfg = channel.ChannelConfig(link_gate=True, on_silence="hold")
-    loaded = core.read_team(_team(tmp_path / "team", channel_cfg=cfg))
+    cfg = channel.ChannelConfig(link_gate=True, on_silence="hold", news_margin=news_margin)
+    agent = AgentConfig(reads_sent=reads_sent)
+    loaded = core.read_team(_team(tmp_path / "team", channel_cfg=cfg, agent_cfg=agent))
     env, team, k, n = loaded.env, loaded.team, loaded.env.num_agents, 3
     params = jax.tree.map(jax.numpy.asarray, loaded.actor)
     key = core.batch_key(7)
@@ -430,13 +434,25 @@ def test_core_replays_the_rollout_of_a_gated_holding_team(tmp_path):
         msgs = [np.zeros(core.inbox_size(cfg, k), np.float32)] * k
         last = [np.zeros((k - 1, c), np.float32)] * k
         prev = [np.zeros((k - 1, c), np.int32)] * k
+        delivered = [np.zeros((k - 1, c), np.float32)] * k
         ever = np.zeros((k, k - 1), bool)  # a link that spoke before: silence is then held
         for t in range(env.config.max_steps):
             if bool(state.done):
                 break
             counts["steps"] += 1
             outs = [
-                step_fn(params, i, carry[i], obs[i], msgs[i], gumbel[t, b, i], t, chan[b], prev[i])
+                step_fn(
+                    params,
+                    i,
+                    carry[i],
+                    obs[i],
+                    msgs[i],
+                    gumbel[t, b, i],
+                    t,
+                    chan[b],
+                    prev[i],
+                    delivered[i],
+                )
                 for i in range(k)
             ]
             frames = []
@@ -462,7 +478,13 @@ def test_core_replays_the_rollout_of_a_gated_holding_team(tmp_path):
                     message[r] = channel.decode_sender(cfg, frames[s], k - 1)[slot]
                 ok = np.ones(k - 1, bool)
                 msgs[j], last[j] = receive_fn(chan[b], t, j, message, ok, silent, last[j])
+            for j in range(k):  # what j holds from s is what s says its link delivered (to
+                # float32 rounding: the sender's z + (z_hat - z), the receiver's z_hat)
+                for r, s in enumerate(others[j]):
+                    said = outs[s].delivered[core.frame_slot(s, j)]
+                    np.testing.assert_allclose(said, last[j][r], rtol=0, atol=1e-6)
             carry = [out.carry for out in outs]
+            delivered = [out.delivered for out in outs]
             prev = [np.asarray(out.symbols) for out in outs]
             actions = jax.numpy.asarray([int(out.action) for out in outs])
             obs, state, *_ = env_step(env_keys[t, b], state, actions)
@@ -585,7 +607,12 @@ def _secret(folder: Path) -> Path:
 
 
 def _team(
-    folder: Path, num_agents: int = 3, max_steps: int = 10, radius: float = 0.45, channel_cfg=None
+    folder: Path,
+    num_agents: int = 3,
+    max_steps: int = 10,
+    radius: float = 0.45,
+    channel_cfg=None,
+    agent_cfg=None,
 ) -> Path:
     """An exported team of untrained actors: enough to test that deploy plays eval's episodes
     (their messages are busy, the goals close enough that some episodes succeed)."""
@@ -599,6 +626,8 @@ def _team(
     config = RLConfig(env=env, seed=11)
     if channel_cfg is not None:
         config = dataclasses.replace(config, channel=channel_cfg)
+    if agent_cfg is not None:
+        config = dataclasses.replace(config, agent=agent_cfg)
     _, team = make_team(config)
     shapes = jax.eval_shape(team.init, jax.random.key(0))["actor"]  # traced, not compiled
     rng = np.random.default_rng(3)
@@ -681,14 +710,14 @@ def test_deploy_matches_sparsecomm_eval(tmp_path):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("on_silence", ["null", "hold"])
-def test_a_team_with_link_gates_deployed_plays_evals_episodes(tmp_path, on_silence):
+@pytest.mark.parametrize("on_silence, news_margin", [("null", None), ("hold", None), ("hold", 0.1)])
+def test_a_team_with_link_gates_deployed_plays_evals_episodes(tmp_path, on_silence, news_margin):
     """Gated links (``ChannelConfig.link_gate``): a closed link sends no datagram, and its
     receiver, told so by the world's heard map, makes of it what the simulation does (the null
     message, or under ``on_silence = "hold"`` the link's last message with news 0), so deploy
     still plays eval's episodes exactly, and the network carries one datagram per speaking
-    link."""
-    cfg = channel.ChannelConfig(link_gate=True, on_silence=on_silence)
+    link; with ``news_margin`` each agent process opens its links on news as the rollout does."""
+    cfg = channel.ChannelConfig(link_gate=True, on_silence=on_silence, news_margin=news_margin)
     team = _team(tmp_path / "team", channel_cfg=cfg)
     (row,) = deploy(Deploy(run=team, episodes=4, out=tmp_path / "deploy"))["runs"]
     sim = row["simulation"]

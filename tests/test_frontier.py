@@ -121,6 +121,13 @@ def test_wire_frontier_rows_count_the_network_from_the_datagrams():
     assert wire_frontier.rows({"runs": old}, config, "small", "rl")[0]["network_bits"] is None
     with pytest.raises(ValueError, match="task"):
         wire_frontier.rows({"runs": runs}, config, "big", "rl")
+    # a row of event-triggered links stands beside the learned gate's, not in its place
+    news = ChannelConfig(prices="wire", link_gate=True, on_silence="hold", news_margin=0.1)
+    (other,) = wire_frontier.rows({"runs": runs}, RLConfig(channel=news), "small", "rl")
+    assert other["news_margin"] == 0.1 and row["news_margin"] is None
+    assert wire_frontier.row_key(other) != wire_frontier.row_key(row)
+    legacy = {k: v for k, v in row.items() if k != "news_margin"}  # written before the field
+    assert wire_frontier.row_key(legacy) == wire_frontier.row_key(row)
 
 
 def test_wire_frontier_rows_say_the_learner_and_when_its_mean_success_passed(tmp_path):

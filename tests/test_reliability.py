@@ -61,6 +61,11 @@ def _refused(argv, capsys, field):
         (["train", "--config.num-envs", "0"], "RLConfig.num_envs"),
         (["train", "--config.channel.levels", "0"], "ChannelConfig.levels"),
         (["train", "--config.budget.bits", "-1"], "BudgetConfig.bits"),
+        # links that speak on news need a gate and held messages, and read back only what holds
+        (["train", "--config.channel.news-margin", "0.1"], "ChannelConfig.news_margin"),
+        (["train", "--preset", "silent", "--config.channel.news-margin", "2"], "news_margin"),
+        (["train", "--config.agent.reads-sent"], "RLConfig.agent.reads_sent"),
+        (["train", "--preset", "silent", "--config.budget.decoupled"], "budget.decoupled"),
         (["train", "--preset", "nope"], "--preset"),
         (["eval", "--preset", "small"], "--preset"),
         # Upper bounds (configs.MAX_UPDATES, configs.MAX_SEED, experiment.MAX_FPS).

@@ -104,6 +104,16 @@ class ChannelConfig:
     link, whether this step's message is news (1) or held (0). Under ``hold`` a lost packet is
     held too (a receiver that gets nothing cannot tell silence from loss). ``hold``: the
     ``discrete`` mode, no delay, the ``concat`` inbox. Paper: ``null``."""
+    news_margin: float | None = None
+    """Event-triggered links: with ``link_gate`` and ``on_silence = "hold"``, a link's gate
+    also opens when what it would say differs from what its recipient holds:
+    ``g <- max(g, clip((d - news_margin) / news_margin, 0, 1))`` with ``d = max_k |z_k - h_k|``
+    over the link's C elements, ``h`` the last message the link delivered (zeros before the
+    first; the sender knows it: the shared dither rebuilds it on both sides). A link then
+    speaks when it has news without having to learn when news comes, and the price teaches its
+    signal to stay put when there is none (``channel.news_gate``). In signal units (z in
+    [0, 1]), in (0, 1]; the quantizer's own error is at most ``0.5 / levels``. ``None``: the
+    learned gate alone. ours: ``None``, what runs before this field did (docs/wire.md)."""
 
     def __post_init__(self):
         if self.mode not in CHANNEL_MODES:
@@ -149,6 +159,15 @@ class ChannelConfig:
                     f"'discrete' and noise.delay 0 (got mode {self.mode!r}, delay "
                     f"{self.noise.delay})",
                 )
+        if self.news_margin is not None and not (
+            0 < self.news_margin <= 1 and self.link_gate and self.holds
+        ):
+            raise _bad(
+                "news_margin",
+                self.news_margin,
+                "None, or in (0, 1] with link_gate True and on_silence 'hold' (got link_gate "
+                f"{self.link_gate}, on_silence {self.on_silence!r})",
+            )
         if self.prices not in PRICES:
             raise _bad("prices", self.prices, f"one of {PRICES}")
         if isinstance(self.check_bits, bool) or self.check_bits not in CHECK_BITS:

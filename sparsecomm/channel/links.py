@@ -187,6 +187,27 @@ class Sent(NamedTuple):
     the wire acts on. ``None``: ``wire_bits`` (a link's own packet)."""
 
 
+def news_gate(cfg: ChannelConfig, z: jax.Array, held: jax.Array) -> jax.Array:
+    """Event-triggered links (``ChannelConfig.news_margin``): each link's gate opened also by
+    how far what it would say is from what its recipient holds.
+
+    Args:
+      cfg: the channel (``link_gate``, ``hold``; a ``news_margin``, else ``z`` is returned).
+      z: (..., L, C + 1) signals of L links, the gate last (:func:`transmit`'s ``z``).
+      held: (..., L, C) the last message each link delivered (``Sent.z_hat`` of the last step
+        it spoke, zeros before the first); no gradient flows into it.
+
+    Returns:
+      ``z`` with each gate ``max(g, clip((d - m) / m, 0, 1))``, ``d = max_k |z_k - held_k|``.
+    """
+    if cfg.news_margin is None:
+        return z
+    margin = cfg.news_margin
+    d = jnp.abs(z[..., :-1] - jax.lax.stop_gradient(held)).max(-1)
+    news = jnp.clip((d - margin) / margin, 0.0, 1.0)
+    return z.at[..., -1].set(jnp.maximum(z[..., -1], news))
+
+
 def transmit(
     cfg: ChannelConfig,
     z: jax.Array,

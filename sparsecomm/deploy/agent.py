@@ -188,13 +188,22 @@ class Agent:
         self.carry = jnp.zeros((self.h,), jnp.float32)
         self.sent_prev = np.zeros((self.k - 1, self.c), np.int32)  # my links' symbols at t - 1
         self.last = jnp.zeros((self.k - 1, self.c), jnp.float32)
+        self.delivered = jnp.zeros((self.k - 1, self.c), jnp.float32)  # my links' last messages
 
     def _warm_up(self) -> None:
         """Compile every jitted function before saying hello."""
         obs = np.zeros(self._obs_dim(), np.float32)
         msgs = np.zeros(self.inbox_size, np.float32)
         self.step_fn(
-            self.params, self.carry, obs, msgs, self.gumbel[0, 0], 0, self.chan[0], self.sent_prev
+            self.params,
+            self.carry,
+            obs,
+            msgs,
+            self.gumbel[0, 0],
+            0,
+            self.chan[0],
+            self.sent_prev,
+            self.delivered,
         ).action.block_until_ready()
         ok = np.zeros(self.k - 1, bool)
         self.receive_fn(self.chan[0], 0, self._message_buffer(), ok, ~ok, self.last)
@@ -376,8 +385,9 @@ class Agent:
             t,
             self.chan[b],
             self.sent_prev,
+            self.delivered,
         )
-        self.carry, self.t = out.carry, t
+        self.carry, self.t, self.delivered = out.carry, t, out.delivered
         symbols, signal = np.asarray(out.symbols), np.asarray(out.signal)
         spoke = np.asarray(out.spoke, bool)
         n = self.k - 1

@@ -129,6 +129,7 @@ class StepOut(NamedTuple):
     payload: jax.Array  # (K-1,) payload bits of each link (the library's count)
     wire: jax.Array  # () bits of its frame: Sent.wire_bits summed over its links
     spoke: jax.Array  # (K-1,) bool: the link speaks this step (module docstring)
+    delivered: jax.Array  # (K-1, C) float32 what each link last delivered (``reads_sent``)
 
 
 def link_speaks(sent: channel.Sent) -> jax.Array:
@@ -143,17 +144,22 @@ def link_speaks(sent: channel.Sent) -> jax.Array:
 @functools.lru_cache(maxsize=16)
 def agent_step(team, cfg: ChannelConfig, greedy: bool):
     """The jitted step of an agent: ``(params, i, carry (H,), obs, msgs ((K-1) C,), gumbel
-    (A,), t, chan_key, prev (K-1, C)) -> StepOut`` for agent ``i`` (a traced argument: every
-    agent runs the same compiled program); ``msgs``: its inbox, ``(K-1) C`` messages then,
-    under ``on_silence = "hold"``, ``K-1`` news inputs (:func:`receive`); ``chan_key``: the
-    episode's channel key, from which the dither of its links at ``t`` is drawn; ``prev``: its
-    links' symbols at ``t - 1``. The links are the channel's sender side,
+    (A,), t, chan_key, prev (K-1, C), delivered (K-1, C)) -> StepOut`` for agent ``i`` (a
+    traced argument: every agent runs the same compiled program); ``msgs``: its inbox, ``(K-1)
+    C`` messages then, under ``on_silence = "hold"``, ``K-1`` news inputs (:func:`receive`);
+    ``chan_key``: the episode's channel key, from which the dither of its links at ``t`` is
+    drawn; ``prev``: its links' symbols at ``t - 1``; ``delivered``: what each of its links
+    last delivered (zeros before; read by a team with ``AgentConfig.reads_sent``, appended to
+    ``msgs`` as the rollout appends it). The links are the channel's sender side,
     ``channel.transmit``, on the agent's own row."""
     k = team.num_agents
 
-    def step(params, i, carry, obs, msgs, gumbel, t, chan_key, prev):
+    def step(params, i, carry, obs, msgs, gumbel, t, chan_key, prev, delivered):
         def one_row(x):  # a batch of one episode whose only real row is agent i's
             return jnp.zeros((1, k, *x.shape), x.dtype).at[0, i].set(x)
+
+        if team.reads_sent:
+            msgs = jnp.concatenate([msgs, delivered.reshape(-1)])
 
         carry, logits, z = team.act(params, one_row(carry), one_row(obs), one_row(msgs))
         log_probs = jax.nn.log_softmax(logits[0, i])
@@ -165,16 +171,19 @@ def agent_step(team, cfg: ChannelConfig, greedy: bool):
         u = None
         if cfg.quantizes:
             u = channel.dither_links(chan_key, t, i, recipients, cfg.signal_elements)[None]
-        sent = channel.transmit(cfg, z[0, i][None], u, prev=prev[None])
+        signal = channel.news_gate(cfg, z[0, i], delivered)  # as the rollout
+        sent = channel.transmit(cfg, signal[None], u, prev=prev[None])
         spoke = link_speaks(sent)[0]
+        delivered = jnp.where(spoke[:, None], sent.z_hat[0], delivered)
         return StepOut(
             carry[0, i],
             action.astype(jnp.int32),
             sent.symbols[0],
-            z[0, i],
+            signal,
             sent.payload_bits[0],
             sent.wire_bits[0].sum(),
             spoke,
+            delivered,
         )
 
     return jax.jit(step)
