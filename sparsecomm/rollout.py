@@ -256,10 +256,7 @@ def rollout(
             msgs = channel.deliver(got.z_hat)
         if got.news is not None:  # which messages are news, by recipient
             msgs = jnp.concatenate([msgs, channel.inbox(got.news)], -1)
-        own = carry.sent  # what each link last delivered, by sender
-        if keeps_sent:
-            own = jnp.where((sent.wire_bits > 0)[..., None], sent.z_hat, own)
-            own = jax.lax.stop_gradient(own)
+        own = channel.last_delivered(sent, carry.sent) if keeps_sent else None  # by sender
         if team.reads_sent:  # each sender reads it back
             msgs = jnp.concatenate([msgs, own.reshape(num_envs, k, -1)], -1)
         global_state = jax.vmap(env.global_state)(state)

@@ -208,6 +208,14 @@ def news_gate(cfg: ChannelConfig, z: jax.Array, held: jax.Array) -> jax.Array:
     return z.at[..., -1].set(jnp.maximum(z[..., -1], news))
 
 
+def last_delivered(sent: Sent, held: jax.Array) -> jax.Array:
+    """What each link has delivered by the end of this step, as its sender knows it: the
+    message of a link that spoke (``Sent.wire_bits > 0``: ``Sent.z_hat``), else ``held``, the
+    last one before (zeros before the first); no gradient. :func:`news_gate`'s ``held`` at the
+    next step, and what ``AgentConfig.reads_sent`` reads back. (..., L, C)."""
+    return jax.lax.stop_gradient(jnp.where((sent.wire_bits > 0)[..., None], sent.z_hat, held))
+
+
 def transmit(
     cfg: ChannelConfig,
     z: jax.Array,

@@ -174,7 +174,7 @@ def agent_step(team, cfg: ChannelConfig, greedy: bool):
         signal = channel.news_gate(cfg, z[0, i], delivered)  # as the rollout
         sent = channel.transmit(cfg, signal[None], u, prev=prev[None])
         spoke = link_speaks(sent)[0]
-        delivered = jnp.where(spoke[:, None], sent.z_hat[0], delivered)
+        delivered = channel.last_delivered(sent, delivered[None])[0]
         return StepOut(
             carry[0, i],
             action.astype(jnp.int32),
