@@ -587,6 +587,52 @@ def test_expected_frame_bits_gradient_matches_finite_differences_where_smooth():
     assert dg.min() > 0
 
 
+@pytest.mark.parametrize("name", ["paper", "fixed"])
+def test_expected_frame_bits_gradient_is_the_exact_sums(name):
+    """Value and gradient against the sum over every outcome of two gated links of three
+    elements (4 x 2^6 outcomes, each weighed by its probability, differentiated by JAX), where
+    the written-out gradient's products meet exact zeros: steps up at exactly one half, gates
+    exactly 0 and 1, links sure to be null or sure to speak."""
+    levels, c = 16, 3  # 16 z = 0.5 exactly for z = 1/32
+    code = channel.Code(name, levels)
+    table = code.wire_lengths(c)
+    z = jnp.asarray(
+        [
+            [[1 / 32, 1 / 32, 3 / 32], [0.0, 0.2, 1 / 32]],
+            [[1 / 32, 1 / 32, 1 / 32], [0.0, 0.0, 0.0]],
+            [[0.3, 0.01, 0.5], [0.07, 1 / 32, 1.0]],
+        ],
+        jnp.float32,
+    )
+    g = jnp.asarray([[1.0, 0.4], [0.0, 1.0], [0.7, 1.0]], jnp.float32)
+    x = np.asarray(levels * z)
+    lo = np.floor(x).astype(int)
+    outcomes = list(itertools.product([0, 1], repeat=2 * c + 2))
+    bits = np.zeros((len(z), len(outcomes)), np.float32)
+    for i, j in itertools.product(range(len(z)), range(len(outcomes))):
+        up, opens = np.reshape(outcomes[j][: 2 * c], (2, c)), np.asarray(outcomes[j][2 * c :])
+        m = np.minimum(lo[i] + up, levels) * opens[:, None]
+        bits[i, j] = 8 * len(channel.encode_frame(m, code, check_bits=8))
+    pick = jnp.asarray(outcomes, jnp.float32)  # (outcomes, 2 C + 2)
+
+    def exact(z, g):
+        f = (levels * z - lo).reshape(len(z), 1, 2 * c)
+        p_up = jnp.where(pick[:, : 2 * c] > 0, f, 1.0 - f).prod(-1)
+        gg = g[:, None, :]
+        p_open = jnp.where(pick[:, 2 * c :] > 0, gg, 1.0 - gg).prod(-1)
+        return (p_up * p_open * bits).sum(-1)
+
+    def priced(z, g):
+        return channel.expected_frame_bits(z, levels, table, 8, g)
+
+    np.testing.assert_allclose(priced(z, g), exact(z, g), rtol=1e-5, atol=1e-5)
+    for argnum in (0, 1):
+        want = jax.grad(lambda *a: exact(*a).sum(), argnum)(z, g)
+        got = jax.grad(lambda *a: priced(*a).sum(), argnum)(z, g)
+        assert np.isfinite(np.asarray(got)).all()
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-3)
+
+
 def test_a_link_gate_opens_with_its_probability_and_a_closed_link_sends_nothing():
     cfg = channel.ChannelConfig(link_gate=True, prices="wire")
     b, k, c = 2000, 3, cfg.num_elements

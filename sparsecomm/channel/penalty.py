@@ -9,6 +9,10 @@ elements of a step; how they normalise it over steps and episodes is documented 
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+import math
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -47,17 +51,6 @@ def expected_bits(z: jax.Array, levels: int, lengths) -> jax.Array:
     return (1.0 - frac) * table[k, lo] + frac * table[k, hi]
 
 
-_COS8 = np.cos(2 * np.pi * np.arange(8) / 8).astype(np.float32)  # numpy: no device at import
-_SIN8 = np.sin(2 * np.pi * np.arange(8) / 8).astype(np.float32)
-_OMEGA = np.arange(1, 5)  # the residues w = 1..4 of the characteristic function (w = 0 is 1)
-
-
-def _turn(lengths, omega=_OMEGA):
-    """``exp(-2 pi i w lengths / 8)`` for w = 1..4, as (cos, -sin): (..., 4) each."""
-    turn = (jnp.asarray(lengths)[..., None] * omega) % 8
-    return jnp.asarray(_COS8)[turn], -jnp.asarray(_SIN8)[turn]
-
-
 def expected_frame_bits(
     z: jax.Array, levels: int, wire_lengths, check_bits: int = 32, gate=None
 ) -> jax.Array:
@@ -89,11 +82,21 @@ def expected_frame_bits(
                + E[pad(L + X); some link speaks]
 
     ``S_l`` the codeword bits of link l and ``X`` the links' bits after the recipient map. The
-    padding term comes from the distribution of ``X mod 8``: the product of the links'
-    characteristic functions on the 8 residues, each the gate's mixture of silence and of its
-    bitmap plus the product of its elements' characteristic functions. The cliff: ``p0_l`` is
-    0, with no gradient, as soon as one element has ``levels z_lk >= 1``; a gate's ``g_l`` then
-    still prices the link's whole body.
+    padding term comes from the distribution of ``X mod 8``, through its characteristic
+    function: the product over links of each one's (the gate's mixture of silence and of its
+    bitmap plus codewords), each of those the product over its elements of one step between
+    two symbols. Every length and C share the factor ``d = gcd(8, C, lengths)`` (2 for the
+    paper's code, whose codewords have even lengths), so only ``X / d`` modulo ``8 / d``
+    matters: frequencies 1 and 2 of 4 for the paper's code instead of 1 to 4 of 8.
+
+    The gradient is written out, not traced (``jax.custom_vjp``): the derivative of a product
+    in one factor is the product of the others, formed as the product over the factor (a
+    factor below 1e-15 in modulus stands in as 1e-15 there, so that the others' product of an
+    exact zero is exact and a product that holds a zero comes out 1e-15 times too large
+    instead of 0). The forward pass computes value and gradient together in a few fused
+    passes; the backward pass is one multiplication. The cliff: ``p0_l`` is 0, with no
+    gradient, as soon as one element has ``levels z_lk >= 1``; a gate's ``g_l`` then still
+    prices the link's whole body.
     """
     levels = check_levels(levels)
     check_unit_interval(z)
@@ -101,43 +104,166 @@ def expected_frame_bits(
     num_links, c = x.shape[-2], x.shape[-1]
     g = jnp.ones(x.shape[:-1], jnp.float32) if gate is None else jnp.asarray(gate, jnp.float32)
     lo = jnp.clip(jnp.floor(jax.lax.stop_gradient(x)), 0, levels).astype(jnp.int32)
-    hi = jnp.minimum(lo + 1, levels)
-    f = x - lo
-    table = jnp.asarray(wire_lengths, jnp.int32)
+    table = np.asarray(wire_lengths, np.int64)
+    hi = np.minimum(np.arange(levels + 1) + 1, levels)
     k = jnp.arange(c)
-    len_lo, len_hi = table[k, lo], table[k, hi]
-    codewords = ((1.0 - f) * len_lo + f * len_hi).sum(-1)  # (..., L): E[S_l]
-    p0 = jnp.prod(jnp.where(lo == 0, 1.0 - f, 0.0), -1)  # (..., L)
-    speaks = g * (1.0 - p0)
-    quiet = jnp.prod(1.0 - speaks, -1)  # (...): no link speaks
-    # Phi_l(w) = E[exp(-2 pi i w S_l / 8)], w = 1..4: the product over the link's elements of
-    # each one's two symbols, in real arithmetic.
-    (a_lo, b_lo), (a_hi, b_hi) = _turn(len_lo), _turn(len_hi)
-    fw = f[..., None]
-    a, b = (1.0 - fw) * a_lo + fw * a_hi, (1.0 - fw) * b_lo + fw * b_hi  # (..., L, C, 4)
-    re, im = a[..., 0, :], b[..., 0, :]
-    for j in range(1, c):
-        re, im = re * a[..., j, :] - im * b[..., j, :], re * b[..., j, :] + im * a[..., j, :]
-    # psi_l(w) = (1 - g) + g (p0 + exp(-2 pi i w C / 8) (Phi_l(w) - p0)): the link's bits
-    cw, sw = _turn(np.int32(c))
-    p0w, gw = p0[..., None], g[..., None]
-    spoke_re, spoke_im = cw * (re - p0w) - sw * im, cw * im + sw * (re - p0w)
-    link_re, link_im = 1.0 - gw + gw * (p0w + spoke_re), gw * spoke_im  # (..., L, 4)
-    re, im = link_re[..., 0, :], link_im[..., 0, :]
-    for j in range(1, num_links):
-        lr, li = link_re[..., j, :], link_im[..., j, :]
-        re, im = re * lr - im * li, re * li + im * lr
-    # E[pad(L + X)] = sum_w Phi_X(w) Q(w), Q the inverse DFT of the padding after r = X mod 8;
-    # X is real, so Phi_X(8 - w) is Phi_X(w)'s conjugate and w = 1..4 suffice (Phi_X(0) = 1).
-    r = np.arange(8)
-    pad = (-(num_links + r)) % 8
-    angle = 2 * np.pi * np.outer(_OMEGA, r) / 8
-    twice = np.array([2.0, 2.0, 2.0, 1.0])  # w and 8 - w, and w = 4 once
-    q_re = jnp.asarray(twice * (pad * np.cos(angle)).sum(1) / 8, jnp.float32)
-    q_im = jnp.asarray(twice * (pad * np.sin(angle)).sum(1) / 8, jnp.float32)
-    padding = pad.mean() + (re * q_re - im * q_im).sum(-1) - quiet * pad[0]
-    body = (g * ((1.0 - p0) * c + codewords)).sum(-1)
-    return (1.0 - quiet) * (num_links + check_bits) + body + padding
+    len_lo = jnp.asarray(table, jnp.float32)[k, lo]  # (..., L, C) bits of the lower symbol
+    dlen = jnp.asarray(table[:, hi] - table, jnp.float32)[k, lo]  # and the step up's
+    frame = _FrameShape.of(table, num_links, check_bits)
+    return _frame_bits(frame, x - lo, g, len_lo, dlen, (lo == 0).astype(jnp.float32))
+
+
+@dataclasses.dataclass(frozen=True)
+class _FrameShape:
+    """What :func:`expected_frame_bits` needs to know of a code and a frame, all static.
+
+    ``d``: the factor shared by C and every length; ``period = 8 / d``; per frequency ``w`` of
+    ``X / d mod period`` that matters (1 to period / 2; the others are their conjugates),
+    ``steps``: each step up between symbols that turns by ``v`` (a
+    residue) as ``(v, exp(-2 pi i w v / period) - 1)``, ``turn``: ``exp(-2 pi i w r /
+    period)`` for each residue ``r``, ``weight``: the padding's Fourier weight; ``head``: ``L
+    + check_bits``, ``pad``: the padding after each residue of ``X / d``.
+    """
+
+    c: int
+    d: int
+    period: int
+    steps: tuple
+    turn: tuple
+    weight: tuple
+    head: float
+    pad: tuple
+
+    @staticmethod
+    @functools.lru_cache(maxsize=64)
+    def _build(lengths: bytes, shape: tuple, num_links: int, check_bits: int) -> _FrameShape:
+        table = np.frombuffer(lengths, np.int64).reshape(shape)
+        c, levels = shape[0], shape[1] - 1
+        d = math.gcd(8, c, *np.unique(table).tolist())
+        period = 8 // d
+        omega = tuple(range(1, period // 2 + 1))
+        hi = np.minimum(np.arange(levels + 1) + 1, levels)
+        ups = sorted(set((((table[:, hi] - table) // d) % period).ravel().tolist()) - {0})
+        r = np.arange(period)
+        pad = (-(num_links + d * r)) % 8
+        return _FrameShape(
+            c=c,
+            d=d,
+            period=period,
+            steps=tuple(tuple((v, _unit(w * v, period) - 1) for v in ups) for w in omega),
+            turn=tuple(tuple(_unit(w * r, period).tolist()) for w in omega),
+            weight=tuple(
+                complex(
+                    (1.0 if 2 * w == period else 2.0)  # w and period - w, or w once
+                    * (pad * np.exp(2j * np.pi * w * r / period)).sum()
+                    / period
+                )
+                for w in omega
+            ),
+            head=float(num_links + check_bits),
+            pad=tuple(float(p) for p in pad),
+        )
+
+    @classmethod
+    def of(cls, table: np.ndarray, num_links: int, check_bits: int) -> _FrameShape:
+        return cls._build(table.tobytes(), table.shape, num_links, int(check_bits))
+
+
+def _unit(k, period: int):
+    """``exp(-2 pi i k / period)``, exact on the quarter turns (complex or array)."""
+    v = np.exp(-2j * np.pi * np.asarray(k) / period)
+    v = np.round(v.real, 12) + 1j * np.round(v.imag, 12)
+    return complex(v) if v.ndim == 0 else v
+
+
+_TINY = 1e-15  # a factor's stand-in modulus when forming the product of the others
+
+
+def _and_others(re, im=None):
+    """Product along the last axis of factors ``re + i im`` (``im`` None: real) and, for each
+    factor, the product of all the others: ((...), (..., n)) as (re, im) pairs (im None when
+    real). A factor below ``_TINY`` in modulus stands in as ``_TINY`` for the others' products
+    (see :func:`expected_frame_bits`)."""
+    if im is None:
+        safe = jnp.where(jnp.abs(re) < _TINY, _TINY, re)
+        both = jnp.prod(safe, -1, keepdims=True)
+        return (jnp.prod(re, -1), None), (both / safe, None)
+    tiny = re * re + im * im < _TINY * _TINY
+    safe_re, safe_im = jnp.where(tiny, _TINY, re), jnp.where(tiny, 0.0, im)
+    both = jnp.prod(jax.lax.complex(safe_re, safe_im), -1, keepdims=True)
+    b_re, b_im = jnp.real(both), jnp.imag(both)
+    modulus = safe_re * safe_re + safe_im * safe_im
+    others_re = (b_re * safe_re + b_im * safe_im) / modulus  # both / safe
+    others_im = (b_im * safe_re - b_re * safe_im) / modulus
+    whole = jnp.prod(jax.lax.complex(re, im), -1)
+    return (jnp.real(whole), jnp.imag(whole)), (others_re, others_im)
+
+
+def _complex(re, im):
+    return re if im is None else jax.lax.complex(re, im)
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(0,))
+def _frame_bits(s: _FrameShape, f, g, len_lo, dlen, null):
+    """Expected frame bits from each element's step probability ``f`` (..., L, C), the gates
+    ``g`` (..., L), the lower symbol's bits ``len_lo``, the step's ``dlen`` and whether the
+    lower symbol is the null (all (..., L, C))."""
+    return _frame_bits_and_grads(s, f, g, len_lo, dlen, null)[0]
+
+
+def _frame_bits_and_grads(s: _FrameShape, f, g, len_lo, dlen, null):
+    """(value (...), (d value / d f (..., L, C), d value / d g (..., L)))."""
+    a = null * (1.0 - f)  # (..., L, C): the element is null
+    (p0, _), (a_others, _) = _and_others(a)
+    u = 1.0 - g * (1.0 - p0)  # (..., L): the link is silent
+    (q, _), (u_others, _) = _and_others(u)
+    codewords = (len_lo + f * dlen).sum(-1)  # (..., L): E[S_l]
+    value = (1.0 - q) * s.head + (g * ((1.0 - p0) * s.c + codewords)).sum(-1)
+    value += sum(s.pad) / s.period - q * s.pad[0]  # the padding's mean, none without a frame
+    d_q = -(s.head + s.pad[0])
+    d_p0 = d_q * u_others * g - g * s.c
+    d_f = g[..., None] * dlen
+    d_g = -d_q * u_others * (1.0 - p0) + (1.0 - p0) * s.c + codewords
+    up = jnp.mod(dlen.astype(jnp.int32) // s.d, s.period)  # (..., L, C) residue of a step up
+    first = jnp.mod(s.c // s.d + len_lo.sum(-1).astype(jnp.int32) // s.d, s.period)  # (..., L)
+    for steps, turn, weight in zip(s.steps, s.turn, s.weight, strict=True):
+        # link l's characteristic function at this frequency: its bitmap and lower symbols'
+        # turn times the product over elements of (1 + f (e - 1)), e the step up's turn
+        e_re = sum(jnp.where(up == v, e.real, 0.0) for v, e in steps)
+        real = all(e.imag == 0 for _, e in steps)
+        e_im = None if real else sum(jnp.where(up == v, e.imag, 0.0) for v, e in steps)
+        (phi_re, phi_im), (x_re, x_im) = _and_others(1.0 + f * e_re, None if real else f * e_im)
+        base = jnp.asarray(np.asarray(turn, np.complex64))[first]  # (..., L)
+        c_w = turn[(s.c // s.d) % s.period]
+        phi = base * _complex(phi_re, phi_im)
+        psi = 1.0 - g + g * p0 * (1.0 - c_w) + g * phi  # the link's bits, gate included
+        (all_re, all_im), (o_re, o_im) = _and_others(jnp.real(psi), jnp.imag(psi))
+        value += jnp.real(weight * jax.lax.complex(all_re, all_im))
+        d_psi = weight * jax.lax.complex(o_re, o_im)  # (..., L)
+        d_p0 += jnp.real(d_psi * g * (1.0 - c_w))
+        d_g += jnp.real(d_psi * (p0 * (1.0 - c_w) + phi - 1.0))
+        d_phi = (d_psi * g * base)[..., None]  # (..., L, 1) per unit of the element product
+        if real:  # Re(d_phi e x_others), e and the others' products real
+            d_f += e_re * jnp.real(d_phi) * x_re
+        else:
+            ex_re, ex_im = e_re * x_re - e_im * x_im, e_re * x_im + e_im * x_re
+            d_f += jnp.real(d_phi) * ex_re - jnp.imag(d_phi) * ex_im
+    d_f -= d_p0[..., None] * null * a_others
+    return value, (d_f, d_g)
+
+
+def _frame_bits_fwd(s, f, g, len_lo, dlen, null):
+    value, grads = _frame_bits_and_grads(s, f, g, len_lo, dlen, null)
+    return value, (grads, len_lo, dlen, null)
+
+
+def _frame_bits_bwd(s, residuals, ct):
+    (d_f, d_g), *constants = residuals
+    zeros = [jnp.zeros_like(x) for x in constants]  # the symbols' tables: no gradient
+    return (ct[..., None, None] * d_f, ct[..., None] * d_g, *zeros)
+
+
+_frame_bits.defvjp(_frame_bits_fwd, _frame_bits_bwd)
 
 
 def code_penalty(z: jax.Array, levels: int, code) -> jax.Array:
