@@ -180,6 +180,7 @@ def rollout(
     heard_links = team.cfg.neighbours if gathered else k - 1  # links each recipient is listed
     sent_in = (k - 1) * c if team.reads_sent else 0  # what the agent's own links last delivered
     keeps_sent = team.reads_sent or channel_cfg.news_margin is not None
+    later = channel_cfg.prices_later  # never with gathered links (``lists_links``)
     init = Carry(
         env_state=state,
         obs=obs,
@@ -273,7 +274,7 @@ def rollout(
             valid=valid,
             dones=dones[:, 0] & valid,
             success=info["success"] & valid,
-            penalty=sent.penalty.sum((-2, -1)),
+            penalty=jnp.zeros(()) if later else sent.penalty.sum((-2, -1)),
             payload_bits=sent.payload_bits.sum((-2, -1)),
             wire_bits=sent.wire_bits.sum((-2, -1)),
             speaking=(sent.wire_bits > 0).sum((-2, -1)).astype(jnp.float32),
@@ -302,11 +303,14 @@ def rollout(
             heard=None if live is None else live if gathered else channel.inbox(live),
             sent=own,
         )
-        return carry, record
+        return carry, (record, (z, live) if later else None)
 
     if remat:
         step = jax.checkpoint(step)
-    _, traj = jax.lax.scan(step, init, noise)
+    _, (traj, priced) = jax.lax.scan(step, init, noise)
+    if later:  # the whole rollout's links priced at once (``ChannelConfig.prices_later``)
+        z, live = priced
+        return traj.replace(penalty=channel.price(channel_cfg, z, live).sum((-2, -1)))
     return traj
 
 

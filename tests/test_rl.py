@@ -80,6 +80,34 @@ def test_training_is_deterministic(fast_compile):
         np.testing.assert_array_equal(x, y)
 
 
+def test_pricing_after_the_time_loop_equals_pricing_each_step(monkeypatch, fast_compile):
+    """``ChannelConfig.prices_later``: the rollout prices the wire after its scan; the same
+    penalty, step by step, and the same gradients as the price each step's ``transmit`` makes."""
+    channel_cfg = ChannelConfig(
+        prices="wire", link_gate=True, on_silence="hold", check_bits=16, news_margin=0.1
+    )
+    cfg = dataclasses.replace(TINY, channel=channel_cfg)
+    tr = make_train(cfg)
+    params = tr.team.init(jax.random.key(0))["actor"]
+
+    def penalty(p):
+        traj = rollout(tr.team, tr.env, cfg.channel, p, jax.random.key(1), cfg.num_envs)
+        return traj.penalty
+
+    def total(p):
+        return (penalty(p) * jnp.arange(1.0, 9.0)[:, None]).sum()  # each step weighed apart
+
+    assert channel_cfg.prices_later
+    later, later_grad = penalty(params), jax.grad(total)(params)
+    monkeypatch.setattr(ChannelConfig, "prices_later", property(lambda self: False))
+    each, each_grad = penalty(params), jax.grad(total)(params)
+    assert float(later.min()) > 0 and later.shape == (8, cfg.num_envs)
+    np.testing.assert_allclose(later, each, rtol=1e-6)
+    for a, b in zip(jax.tree.leaves(later_grad), jax.tree.leaves(each_grad), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+    assert max(float(jnp.abs(g).max()) for g in jax.tree.leaves(later_grad)) > 0
+
+
 def test_bits_and_penalty_logged_from_real_symbols(fast_compile):
     def metrics(mode):
         cfg = dataclasses.replace(TINY, channel=ChannelConfig(mode=mode))

@@ -212,6 +212,13 @@ class ChannelConfig:
         return self.mode == "continuous"
 
     @property
+    def prices_later(self) -> bool:
+        """The rollout prices every step's links at once after its time loop instead of step
+        by step inside it (``prices = "wire"``: the frame's price costs a few times less
+        batched over the steps; the same values and gradients)."""
+        return self.prices == "wire"
+
+    @property
     def holds(self) -> bool:
         """A silent link delivers its last message, and receivers read which links are news
         (``on_silence = "hold"``)."""

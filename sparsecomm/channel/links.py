@@ -285,7 +285,7 @@ def transmit(
         else:
             if u is None:
                 raise ValueError("ChannelConfig.mode 'discrete' needs the links' dither u")
-            penalty = cfg.link_penalty(z, code, live)
+            penalty = price(cfg, z, live, code)
             if cfg.link_gate:  # the last element opens the link: 1 with probability g
                 z, g, u, u_gate = z[..., :-1], z[..., -1], u[..., :-1], u[..., -1]
                 opens = jnp.clip(jnp.floor(g + u_gate + 0.5), 0.0, 1.0)
@@ -312,6 +312,16 @@ def transmit(
         payload, wire, penalty = (jnp.where(live, x, 0.0) for x in (payload, wire, penalty))
         speak = None if speak is None else jnp.where(live, speak, 0.0)
     return Sent(m.astype(jnp.int32), z_hat, penalty, payload, wire, log_prob, live, speak, frame)
+
+
+def price(cfg: ChannelConfig, z: jax.Array, live=None, code=None) -> jax.Array:
+    """The differentiable cost of each link of signals ``z`` (..., K, K-1, C'), the penalty
+    :func:`transmit` reports (``ChannelConfig.link_penalty`` of the links that exist, ``live``
+    (..., K, K-1) bool or None: all): (..., K, K-1)."""
+    if live is None:
+        return cfg.link_penalty(z, code)
+    z = jnp.where(live[..., None], z, 0.0)
+    return jnp.where(live, cfg.link_penalty(z, code, live), 0.0)
 
 
 def _framed_bits(cfg: ChannelConfig, m: jax.Array, code: Code, senders=None):
