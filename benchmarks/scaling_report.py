@@ -4,11 +4,16 @@
         --runs runs/scaling/k10_mean runs/scaling/k10_mean_nb2 runs/scaling/k10_off \
         --out docs/results/scaling
 
+    python benchmarks/scaling_report.py --each-runs runs/k10_each runs/k10_each_off ... \
+        --out docs/results/scaling
+
 Throughput: the lines ``benchmarks/train_throughput.py`` prints (one per run). Runs: folders of
 ``sparsecomm train`` (``results.json``, ``metrics.csv``, ``checkpoint/config.json``); per arm
 the mean over seeds of the final evaluation with a BCa 95% CI over seeds
 (``sparsecomm.stats.bootstrap_ci``), and learning curves. Writes ``throughput.png``,
-``learning.png`` and ``tables.md``.
+``learning.png`` and ``tables.md``. Each-runs: the many-agent task's arms (``success_rule
+each``), talking and silent at several K; writes ``learning.json`` (one row per arm),
+``each.png`` (success against K, and the curves) and ``each.md``.
 """
 
 from __future__ import annotations
@@ -40,6 +45,8 @@ class Args:
     """Log of benchmarks/train_throughput.py lines."""
     runs: tuple[Path, ...] = ()
     """``sparsecomm train`` run folders, one per arm."""
+    each_runs: tuple[Path, ...] = ()
+    """``sparsecomm train`` run folders of the many-agent task, one per arm (K, talking or not)."""
     out: Path = Path("docs/results/scaling")
     """Where the figures and tables go."""
 
@@ -81,8 +88,92 @@ def arm(folder: Path) -> dict:
     return out
 
 
+def _ci(vals: np.ndarray) -> list[float]:
+    est, lo, hi = bootstrap_ci(vals) if np.ptp(vals) > 0 else (vals.mean(),) * 3
+    return [float(est), float(lo), float(hi)]
+
+
+def learning_row(folder: Path) -> dict:
+    """One arm of the many-agent task as a row of ``learning.json``: the mean over its seeds of
+    the final evaluation, with a BCa 95% CI over seeds; ``env_steps`` per seed."""
+    meta = json.loads((folder / "checkpoint" / "config.json").read_text())
+    cfg = meta["config"]
+    results = json.loads((folder / "results.json").read_text())
+    runs = results["runs"]
+
+    def metric(name):
+        return _ci(np.array([r[name] for r in runs], float))
+
+    return {
+        "K": cfg["env"]["num_agents"],
+        "comm": cfg["channel"]["mode"] != "off",
+        "neighbours": cfg["agent"]["neighbours"],
+        "seeds": len(runs),
+        "success": metric("success_rate"),
+        "episode_length": metric("episode_length"),
+        "payload_bits": metric("bits_per_step"),
+        "wire_bits": metric("wire_bits_per_step"),
+        "links_per_step": metric("links_per_step"),
+        "env_steps": int(results["env_steps"]),
+    }
+
+
+def each_report(folders: tuple[Path, ...], out: Path) -> list[str]:
+    """``learning.json``, ``each.png`` and the lines of ``each.md`` for the many-agent task."""
+    rows = [learning_row(f) for f in folders]
+    (out / "learning.json").write_text(json.dumps(rows, indent=1) + "\n")
+    lines = [
+        "| K | talking | neighbours | seeds | success | episode length | payload bits / step | "
+        "wire bits / step | links / step | env steps per seed |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
+
+    def fmt(x, digits):
+        return f"{x[0]:.{digits}f} [{x[1]:.{digits}f}, {x[2]:.{digits}f}]"
+
+    for r in rows:
+        lines.append(
+            f"| {r['K']} | {'yes' if r['comm'] else 'no'} | {r['neighbours']} | {r['seeds']} | "
+            f"{fmt(r['success'], 3)} | {fmt(r['episode_length'], 1)} | "
+            f"{fmt(r['payload_bits'], 1)} | {fmt(r['wire_bits'], 1)} | "
+            f"{fmt(r['links_per_step'], 1)} | {r['env_steps']:,} |"
+        )
+    fig, ax = plt.subplots(1, 2, figsize=(9, 3.4))
+    for comm, label in ((True, "talking"), (False, "silent")):
+        sel = sorted((r for r in rows if r["comm"] == comm), key=lambda r: r["K"])
+        if not sel:
+            continue
+        ks = [r["K"] for r in sel]
+        mean = np.array([r["success"][0] for r in sel])
+        err = np.array(
+            [[m - r["success"][1], r["success"][2] - m] for m, r in zip(mean, sel, strict=True)]
+        ).T
+        ax[0].errorbar(ks, mean, yerr=err, fmt="o-", capsize=3, label=label)
+    ax[0].set(xlabel="agents K", ylabel="success (all parked), eval", ylim=(-0.03, 1.03))
+    ax[0].set(xlim=(0, 32), xticks=(3, 10, 20, 30))  # the Ks of the issue, whichever were run
+    ax[0].legend(fontsize=7)
+    for f, r in zip(folders, rows, strict=True):
+        c = read_csv(f / "metrics.csv")
+        per_seed = [c["success_rate"][c["seed"] == s] for s in np.unique(c["seed"])]
+        n = min(len(v) for v in per_seed)
+        mean = np.mean([v[:n] for v in per_seed], 0)
+        label = f"K = {r['K']}, {'talking' if r['comm'] else 'silent'} ({r['seeds']} seeds)"
+        ax[1].plot(np.arange(1, n + 1), smooth(mean, 25), label=label)
+    ax[1].set(xlabel="update (32 episodes)", ylabel="success, training batches")
+    ax[1].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out / "each.png", dpi=120)
+    return lines
+
+
 def main(a: Args) -> None:
     a.out.mkdir(parents=True, exist_ok=True)
+    if a.each_runs:
+        each = each_report(a.each_runs, a.out)
+        (a.out / "each.md").write_text("\n".join(each) + "\n")
+        print("\n".join(each))
+        if a.throughput is None and not a.runs:
+            return
     lines = []
     if a.throughput is not None:
         rows = throughput_rows(a.throughput)
