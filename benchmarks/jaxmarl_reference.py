@@ -86,6 +86,9 @@ class Args:
     """Evaluation episodes per seed (the same for every arm)."""
     out: Path = Path("docs/results/jaxmarl")
     """Folder of ``reference.json`` and ``reference.png``."""
+    timing: bool = False
+    """Only time each arm's training (compile apart) and print its env steps per second: no
+    evaluation, nothing written (docs/plugin.md's speed table, beside JaxMARL's baselines)."""
 
 
 def config_of(a: Args, comm: str) -> RLConfig:
@@ -188,14 +191,32 @@ def plot(rows: list[dict], a: Args, path: Path) -> None:
     fig.savefig(path, dpi=120)
 
 
+def time_arm(a: Args, comm: str, budget: float | None) -> float:
+    """Env steps per second of one arm's training (all seeds in one program), compile apart."""
+    learner = make_train(config_of(a, comm), env=SimpleReference(ReferenceConfig(comm=comm)))
+    keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(a.seeds) + a.seed)
+    b = jnp.nan if budget is None else budget
+    train = jax.jit(jax.vmap(learner.train, in_axes=(0, None, None))).lower(keys, 0.0, b)
+    train = train.compile()
+    start = time.perf_counter()
+    jax.block_until_ready(train(keys, 0.0, b))
+    rate = a.num_updates * a.num_envs * 25 * a.seeds / (time.perf_counter() - start)
+    print(f"{comm} (budget {budget}), {a.seeds} seeds: {rate:,.0f} env steps/s", flush=True)
+    return rate
+
+
 def main(a: Args) -> None:
-    a.out.mkdir(parents=True, exist_ok=True)
     arms = []
     for comm in a.arms:
         if comm == "channel":
             arms += [("channel", None)] + [("channel", b) for b in a.budgets]
         else:
             arms.append((comm, None))
+    if a.timing:
+        for comm, b in arms:
+            time_arm(a, comm, b)
+        return
+    a.out.mkdir(parents=True, exist_ok=True)
     rows = [run_arm(a, comm, b) for comm, b in arms]
     doc = {
         "args": {k: str(v) for k, v in dataclasses.asdict(a).items()},

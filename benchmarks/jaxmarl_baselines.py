@@ -1,0 +1,125 @@
+r"""JaxMARL's own IPPO and MAPPO baselines on MPE simple_reference, for docs/plugin.md's table.
+
+Their scripts run unchanged but for the environment's name, the budget, the seeds and logging.
+None of their code is in this repository; fetch it into a scratch folder outside it:
+
+    git clone https://github.com/FLAIROx/JaxMARL /tmp/jaxmarl       # their repository
+    python -m venv --system-site-packages /tmp/jm                     # this project's jax, flax
+    /tmp/jm/bin/pip install distrax hydra-core omegaconf wandb        # what their scripts import
+    # logging: delete the per-update wandb host callback (it stalls on a 2-core CPU, jax 0.10.2)
+    sed -i 's/^\(\s*\)jax.experimental.io_callback(callback, None, metric)/\1pass/' \
+        /tmp/jaxmarl/baselines/IPPO/ippo_ff_mpe.py /tmp/jaxmarl/baselines/MAPPO/mappo_rnn_mpe.py
+    # logging: MAPPO's train logs only through that callback; return its metrics instead
+    NEW='{"runner_state": runner_state, "metrics": metric}'
+    sed -i "s/{\"runner_state\": runner_state}\$/$NEW/" \
+        /tmp/jaxmarl/baselines/MAPPO/mappo_rnn_mpe.py
+    /tmp/jm/bin/python benchmarks/jaxmarl_baselines.py --baselines /tmp/jaxmarl/baselines \
+        --algo IPPO/ippo_ff_mpe:ippo_ff_mpe --out ippo.json
+    /tmp/jm/bin/python benchmarks/jaxmarl_baselines.py --baselines /tmp/jaxmarl/baselines \
+        --algo MAPPO/mappo_rnn_mpe:mappo_homogenous_rnn_mpe --out mappo.json
+
+Their ``make_train(config)`` is called with their config file's values, except ``ENV_NAME``,
+``TOTAL_TIMESTEPS``, ``NUM_SEEDS`` (1) and ``SEED``; ``wandb`` is replaced by an object whose
+``log`` does nothing. Each seed is its own compiled program (their ``main`` vmaps over
+``NUM_SEEDS`` keys; vmapped over 5 seeds the program stalled on the 2-core VM, every thread
+idle); a long run can go one seed per call (``--seed S --seeds 1``). The return is their
+``returned_episode_returns`` (``MPELogWrapper`` multiplies each agent's return by the number of
+agents) averaged over agents, steps and environments: on
+simple_reference the two agents' rewards sum to minus both distances to the goals, so this is
+docs/plugin.md's team return. The final figure is the mean over the last 5% of updates (training
+episodes, the sampled policy). Env steps per second are timed with the compile apart.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import json
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+import tyro
+
+
+@dataclasses.dataclass
+class Args:
+    baselines: Path
+    """Their ``baselines`` folder (fetched outside this repository)."""
+    algo: str
+    """``FOLDER/SCRIPT:CONFIG``: ``IPPO/ippo_ff_mpe:ippo_ff_mpe`` or
+    ``MAPPO/mappo_rnn_mpe:mappo_homogenous_rnn_mpe`` (their file names)."""
+    out: Path
+    """JSON file of the returns and timings."""
+    env: str = "MPE_simple_reference_v3"
+    """Their environment name."""
+    steps: float = 6.4e6
+    """``TOTAL_TIMESTEPS`` per seed: 6.4M, docs/plugin.md's budget per run."""
+    seeds: int = 5
+    """Seeds, one compiled program each."""
+    seed: int = 31000
+    """First seed (docs/plugin.md's seeds: 31000-31004)."""
+
+
+class _NoLog:
+    """Stands in for their ``wandb`` module: their logging only."""
+
+    def log(self, *args, **kwargs):
+        pass
+
+    def init(self, *args, **kwargs):
+        pass
+
+
+def main(a: Args) -> dict:
+    from omegaconf import OmegaConf  # their config loader (in the scratch environment)
+
+    folder, names = a.algo.split("/")
+    script, config_name = names.split(":")
+    base = a.baselines / folder
+    sys.path.insert(0, str(base))
+    module = importlib.import_module(script)
+    module.wandb = _NoLog()
+    config = OmegaConf.to_container(OmegaConf.load(base / "config" / f"{config_name}.yaml"))
+    config.update(ENV_NAME=a.env, TOTAL_TIMESTEPS=a.steps, NUM_SEEDS=1, SEED=a.seed)
+    returns, compile_s, run_s = [], 0.0, 0.0
+    for seed in range(a.seed, a.seed + a.seeds):
+        keys = jax.random.split(jax.random.PRNGKey(seed), 1)
+        start = time.perf_counter()
+        train = jax.jit(jax.vmap(module.make_train(dict(config, SEED=seed))))
+        train = train.lower(keys).compile()
+        compile_s += time.perf_counter() - start
+        start = time.perf_counter()
+        out = jax.block_until_ready(train(keys))
+        run_s += time.perf_counter() - start
+        ret = np.asarray(out["metrics"]["returned_episode_returns"])  # (1, updates, ..., agents)
+        returns.append(ret.reshape(ret.shape[1], -1).mean(-1))  # (updates,) team return
+        print(f"seed {seed}: {time.perf_counter() - start:.0f} s", flush=True)
+    returns = np.stack(returns)  # (seeds, updates)
+    updates = returns.shape[1]
+    final = returns[:, -max(1, updates // 20) :].mean(1)
+    env_steps = config["NUM_ENVS"] * config["NUM_STEPS"] * updates
+    result = {
+        "algo": a.algo,
+        "env": a.env,
+        "config": config,
+        "seeds": list(range(a.seed, a.seed + a.seeds)),
+        "updates": updates,
+        "env_steps_per_seed": env_steps,
+        "compile_s": compile_s,
+        "run_s": run_s,
+        "env_steps_per_s": env_steps * a.seeds / run_s,
+        "final_return_per_seed": final.tolist(),
+        "final_return_mean": float(final.mean()),
+        "curve_mean": returns.mean(0)[:: max(1, updates // 200)].tolist(),
+        "jax": jax.__version__,
+    }
+    a.out.write_text(json.dumps(result, indent=1))
+    print(json.dumps({k: v for k, v in result.items() if k not in ("config", "curve_mean")}))
+    return result
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))
