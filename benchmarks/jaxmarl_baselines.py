@@ -22,7 +22,9 @@ Their ``make_train(config)`` is called with their config file's values, except `
 ``TOTAL_TIMESTEPS``, ``NUM_SEEDS`` (1) and ``SEED``; ``wandb`` is replaced by an object whose
 ``log`` does nothing. Each seed is its own compiled program (their ``main`` vmaps over
 ``NUM_SEEDS`` keys; vmapped over 5 seeds the program stalled on the 2-core VM, every thread
-idle); a long run can go one seed per call (``--seed S --seeds 1``). The return is their
+idle). Each seed's returns go to ``OUT.seedS.json`` as it ends, and a later call with the
+same ``--out`` and ``--steps`` reads them instead of running the seed again, so a run longer
+than a session continues where it stopped. The return is their
 ``returned_episode_returns`` (``MPELogWrapper`` multiplies each agent's return by the number of
 agents) averaged over agents, steps and environments: on
 simple_reference the two agents' rewards sum to minus both distances to the goals, so this is
@@ -86,17 +88,26 @@ def main(a: Args) -> dict:
     config.update(ENV_NAME=a.env, TOTAL_TIMESTEPS=a.steps, NUM_SEEDS=1, SEED=a.seed)
     returns, compile_s, run_s = [], 0.0, 0.0
     for seed in range(a.seed, a.seed + a.seeds):
-        keys = jax.random.split(jax.random.PRNGKey(seed), 1)
-        start = time.perf_counter()
-        train = jax.jit(jax.vmap(module.make_train(dict(config, SEED=seed))))
-        train = train.lower(keys).compile()
-        compile_s += time.perf_counter() - start
-        start = time.perf_counter()
-        out = jax.block_until_ready(train(keys))
-        run_s += time.perf_counter() - start
-        ret = np.asarray(out["metrics"]["returned_episode_returns"])  # (1, updates, ..., agents)
-        returns.append(ret.reshape(ret.shape[1], -1).mean(-1))  # (updates,) team return
-        print(f"seed {seed}: {time.perf_counter() - start:.0f} s", flush=True)
+        done = a.out.with_name(f"{a.out.stem}.seed{seed}.json")  # a seed already run is kept
+        if done.exists() and json.loads(done.read_text())["steps"] == a.steps:
+            one = json.loads(done.read_text())
+            print(f"seed {seed}: read from {done}", flush=True)
+        else:
+            keys = jax.random.split(jax.random.PRNGKey(seed), 1)
+            start = time.perf_counter()
+            train = jax.jit(jax.vmap(module.make_train(dict(config, SEED=seed))))
+            train = train.lower(keys).compile()
+            one = {"steps": a.steps, "compile_s": time.perf_counter() - start}
+            start = time.perf_counter()
+            out = jax.block_until_ready(train(keys))
+            one["run_s"] = time.perf_counter() - start
+            ret = np.asarray(out["metrics"]["returned_episode_returns"])  # (1, updates, .., agents)
+            one["returns"] = ret.reshape(ret.shape[1], -1).mean(-1).tolist()  # (updates,) team
+            done.write_text(json.dumps(one))
+            print(f"seed {seed}: {one['run_s']:.0f} s -> {done}", flush=True)
+        compile_s += one["compile_s"]
+        run_s += one["run_s"]
+        returns.append(np.asarray(one["returns"]))
     returns = np.stack(returns)  # (seeds, updates)
     updates = returns.shape[1]
     final = returns[:, -max(1, updates // 20) :].mean(1)
