@@ -70,6 +70,12 @@ def throughput_rows(path: Path) -> list[dict]:
     return rows
 
 
+def _ci(vals: np.ndarray) -> list[float]:
+    """Mean and BCa 95% interval over seeds (the value thrice when every seed agrees)."""
+    est, lo, hi = bootstrap_ci(vals) if np.ptp(vals) > 0 else (vals.mean(),) * 3
+    return [float(est), float(lo), float(hi)]
+
+
 def arm(folder: Path) -> dict:
     cfg = json.loads((folder / "checkpoint" / "config.json").read_text())
     cfg = cfg.get("config", cfg)
@@ -82,15 +88,9 @@ def arm(folder: Path) -> dict:
             metric, vals = "bits_per_agent_step", vals / k
         if np.isnan(vals).all():
             continue
-        est, lo, hi = bootstrap_ci(vals) if np.ptp(vals) > 0 else (vals.mean(),) * 3
-        out[metric] = (float(est), float(lo), float(hi))
+        out[metric] = _ci(vals)
     out["curves"] = read_csv(folder / "metrics.csv")
     return out
-
-
-def _ci(vals: np.ndarray) -> list[float]:
-    est, lo, hi = bootstrap_ci(vals) if np.ptp(vals) > 0 else (vals.mean(),) * 3
-    return [float(est), float(lo), float(hi)]
 
 
 def learning_row(folder: Path) -> dict:
