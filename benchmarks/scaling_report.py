@@ -13,7 +13,8 @@ the mean over seeds of the final evaluation with a BCa 95% CI over seeds
 (``sparsecomm.stats.bootstrap_ci``), and learning curves. Writes ``throughput.png``,
 ``learning.png`` and ``tables.md``. Each-runs: the many-agent task's arms (``success_rule
 each``), talking and silent at several K; writes ``learning.json`` (one row per arm),
-``each.png`` (success against K, and the curves) and ``each.md``.
+``each.png`` (success against K; success and payload bits per link over training) and
+``each.md``.
 """
 
 from __future__ import annotations
@@ -95,7 +96,10 @@ def arm(folder: Path) -> dict:
 
 def learning_row(folder: Path) -> dict:
     """One arm of the many-agent task as a row of ``learning.json``: the mean over its seeds of
-    the final evaluation, with a BCa 95% CI over seeds; ``env_steps`` per seed."""
+    the final evaluation, with a BCa 95% CI over seeds; ``env_steps`` per seed. Beyond the
+    issue's fields: ``lam``, ``budget`` (the payload budget in bits per step, ``null`` for none),
+    ``budget_per_link`` (whether ``budget`` counts per link rather than for the team) and
+    ``speaking`` (the fraction of existing links that sent, per step)."""
     meta = json.loads((folder / "checkpoint" / "config.json").read_text())
     cfg = meta["config"]
     results = json.loads((folder / "results.json").read_text())
@@ -115,6 +119,10 @@ def learning_row(folder: Path) -> dict:
         "wire_bits": metric("wire_bits_per_step"),
         "links_per_step": metric("links_per_step"),
         "env_steps": int(results["env_steps"]),
+        "lam": float(runs[0]["lam"]),
+        "budget": cfg["budget"]["bits"],
+        "budget_per_link": bool(cfg["budget"]["per_link"]),
+        "speaking": metric("speaking_fraction"),
     }
 
 
@@ -123,32 +131,43 @@ def each_report(folders: tuple[Path, ...], out: Path) -> list[str]:
     rows = [learning_row(f) for f in folders]
     (out / "learning.json").write_text(json.dumps(rows, indent=1) + "\n")
     lines = [
-        "| K | talking | neighbours | seeds | success | episode length | payload bits / step | "
-        "wire bits / step | links / step | env steps per seed |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| K | talking | budget | neighbours | seeds | success | episode length | "
+        "payload bits / step | wire bits / step | links / step | env steps per seed |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
 
     def fmt(x, digits):
         return f"{x[0]:.{digits}f} [{x[1]:.{digits}f}, {x[2]:.{digits}f}]"
 
+    def budget(r):
+        if r["budget"] is None:
+            return f"λ {r['lam']:g}" if r["comm"] else "-"
+        return f"{r['budget']:g} bits / {'link' if r['budget_per_link'] else 'team'} / step"
+
     for r in rows:
         lines.append(
-            f"| {r['K']} | {'yes' if r['comm'] else 'no'} | {r['neighbours']} | {r['seeds']} | "
+            f"| {r['K']} | {'yes' if r['comm'] else 'no'} | {budget(r)} | {r['neighbours']} | "
+            f"{r['seeds']} | "
             f"{fmt(r['success'], 3)} | {fmt(r['episode_length'], 1)} | "
             f"{fmt(r['payload_bits'], 1)} | {fmt(r['wire_bits'], 1)} | "
             f"{fmt(r['links_per_step'], 1)} | {r['env_steps']:,} |"
         )
-    fig, ax = plt.subplots(1, 2, figsize=(9, 3.4))
-    for comm, label in ((True, "talking"), (False, "silent")):
-        sel = sorted((r for r in rows if r["comm"] == comm), key=lambda r: r["K"])
+    fig, ax = plt.subplots(1, 3, figsize=(13, 3.4))
+    arms = (
+        (lambda r: r["comm"] and r["budget"] is None, "talking, λ 0", "o-"),
+        (lambda r: not r["comm"], "silent", "o-"),
+        (lambda r: r["budget"] is not None, "talking, payload budget", "s"),
+    )
+    for (keep, label, fmt_), shift in zip(arms, (0.0, 0.0, 0.6), strict=True):
+        sel = sorted((r for r in rows if keep(r)), key=lambda r: r["K"])
         if not sel:
             continue
-        ks = [r["K"] for r in sel]
+        ks = [r["K"] + shift for r in sel]  # the budget's points beside λ 0's
         mean = np.array([r["success"][0] for r in sel])
         err = np.array(
             [[m - r["success"][1], r["success"][2] - m] for m, r in zip(mean, sel, strict=True)]
         ).T
-        ax[0].errorbar(ks, mean, yerr=err, fmt="o-", capsize=3, label=label)
+        ax[0].errorbar(ks, mean, yerr=err, fmt=fmt_, capsize=3, label=label)
     ax[0].set(xlabel="agents K", ylabel="success (all parked), eval", ylim=(-0.03, 1.03))
     ax[0].set(xlim=(0, 32), xticks=(3, 10, 20, 30))  # the Ks of the issue, whichever were run
     ax[0].legend(fontsize=7)
@@ -158,9 +177,21 @@ def each_report(folders: tuple[Path, ...], out: Path) -> list[str]:
         n = min(len(v) for v in per_seed)
         mean = np.mean([v[:n] for v in per_seed], 0)
         label = f"K = {r['K']}, {'talking' if r['comm'] else 'silent'} ({r['seeds']} seeds)"
-        ax[1].plot(np.arange(1, n + 1), smooth(mean, 25), label=label)
+        if r["budget"] is not None:
+            label = f"K = {r['K']}, {budget(r)} ({r['seeds']} seeds)"
+        line = ax[1].plot(np.arange(1, n + 1), smooth(mean, 25), label=label)[0]
+        if r["comm"]:
+            per_link = [
+                (c["bits_per_step"] / c["links_per_step"])[c["seed"] == s][:n]
+                for s in np.unique(c["seed"])
+            ]
+            ax[2].plot(
+                np.arange(1, n + 1), smooth(np.mean(per_link, 0), 25), color=line.get_color()
+            )
     ax[1].set(xlabel="update (32 episodes)", ylabel="success, training batches")
     ax[1].legend(fontsize=7)
+    ax[2].set(xlabel="update (32 episodes)", ylabel="payload bits per link per step, training")
+    ax[2].set_ylim(bottom=0)
     fig.tight_layout()
     fig.savefig(out / "each.png", dpi=120)
     return lines
@@ -186,7 +217,7 @@ def main(a: Args) -> None:
                 f"| {r['K']} | {r['layout']} | {r['env']:,.0f} | {r['agent']:,.0f} | "
                 f"{r['compile']:.0f} | {r['rss']:.2f} |"
             )
-        fig, ax = plt.subplots(1, 2, figsize=(9, 3.4))
+        fig, ax = plt.subplots(1, 3, figsize=(13, 3.4))
         for layout in sorted({r["layout"] for r in rows}):
             sel = sorted((r for r in rows if r["layout"] == layout), key=lambda r: r["K"])
             ks = [r["K"] for r in sel]
