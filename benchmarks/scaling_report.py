@@ -48,6 +48,13 @@ class Args:
     """``sparsecomm train`` run folders, one per arm."""
     each_runs: tuple[Path, ...] = ()
     """``sparsecomm train`` run folders of the many-agent task, one per arm (K, talking or not)."""
+    previous: Path | None = None
+    """Each-runs: an earlier ``learning.json`` whose rows are kept beside the folders' (arms
+    whose run folders are gone: their curves are not drawn). A folder's row replaces a previous
+    row of the same K, talking, budget, lambda and number of updates."""
+    seeds: tuple[int, ...] = ()
+    """Each-runs: keep only the runs of these seeds (run s of a folder is seed ``config.seed +
+    s``), e.g. the report seeds of a folder that also trained tuning seeds. Empty: every run."""
     out: Path = Path("docs/results/scaling")
     """Where the figures and tables go."""
 
@@ -94,16 +101,30 @@ def arm(folder: Path) -> dict:
     return out
 
 
-def learning_row(folder: Path) -> dict:
+def _kept(folder: Path, seeds: tuple[int, ...]) -> tuple[dict, list[int]]:
+    """The folder's saved run metadata and the indices of its runs to keep (all when ``seeds``
+    is empty)."""
+    meta = json.loads((folder / "checkpoint" / "config.json").read_text())
+    n = len(json.loads((folder / "results.json").read_text())["runs"])
+    base = meta["config"]["seed"]
+    keep = [s for s in range(n) if not seeds or base + s in seeds]
+    if not keep:
+        raise ValueError(f"seeds: none of {seeds} was trained in {folder} (seeds {base}..)")
+    return meta, keep
+
+
+def learning_row(folder: Path, seeds: tuple[int, ...] = ()) -> dict:
     """One arm of the many-agent task as a row of ``learning.json``: the mean over its seeds of
     the final evaluation, with a BCa 95% CI over seeds; ``env_steps`` per seed. Beyond the
     issue's fields: ``lam``, ``budget`` (the payload budget in bits per step, ``null`` for none),
     ``budget_per_link`` (whether ``budget`` counts per link rather than for the team) and
-    ``speaking`` (the fraction of existing links that sent, per step)."""
-    meta = json.loads((folder / "checkpoint" / "config.json").read_text())
+    ``speaking`` (the fraction of existing links that sent, per step), ``engage_success`` (the
+    batch success at which the budget's controller engages, ``null`` without one),
+    ``seed_list`` (the seeds kept), ``updates`` and ``device`` (where it trained)."""
+    meta, keep = _kept(folder, seeds)
     cfg = meta["config"]
     results = json.loads((folder / "results.json").read_text())
-    runs = results["runs"]
+    runs = [results["runs"][s] for s in keep]
 
     def metric(name):
         return _ci(np.array([r[name] for r in runs], float))
@@ -123,17 +144,35 @@ def learning_row(folder: Path) -> dict:
         "budget": cfg["budget"]["bits"],
         "budget_per_link": bool(cfg["budget"]["per_link"]),
         "speaking": metric("speaking_fraction"),
+        "engage_success": cfg["budget"]["engage_success"] if cfg["budget"]["bits"] else None,
+        "seed_list": [cfg["seed"] + s for s in keep],
+        "updates": int(meta["num_updates"]),
+        "device": results["device"],
     }
 
 
-def each_report(folders: tuple[Path, ...], out: Path) -> list[str]:
+def _arm_key(r: dict) -> tuple:
+    return r["K"], r["comm"], r["budget"], r["budget_per_link"], r["lam"], r["updates"]
+
+
+def each_report(
+    folders: tuple[Path, ...],
+    out: Path,
+    seeds: tuple[int, ...] = (),
+    previous: Path | None = None,
+) -> list[str]:
     """``learning.json``, ``each.png`` and the lines of ``each.md`` for the many-agent task."""
-    rows = [learning_row(f) for f in folders]
+    new = [learning_row(f, seeds) for f in folders]
+    old = json.loads(previous.read_text()) if previous is not None else []
+    replaced = {_arm_key(r) for r in new}
+    rows = [r for r in old if _arm_key(r) not in replaced] + new
+    rows.sort(key=lambda r: (r["K"], r["budget"] is not None, not r["comm"]))
     (out / "learning.json").write_text(json.dumps(rows, indent=1) + "\n")
     lines = [
         "| K | talking | budget | neighbours | seeds | success | episode length | "
-        "payload bits / step | wire bits / step | links / step | env steps per seed |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "payload bits / step | wire bits / step | links / step | env steps per seed | updates | "
+        "trained on |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
 
     def fmt(x, digits):
@@ -142,7 +181,10 @@ def each_report(folders: tuple[Path, ...], out: Path) -> list[str]:
     def budget(r):
         if r["budget"] is None:
             return f"λ {r['lam']:g}" if r["comm"] else "-"
-        return f"{r['budget']:g} bits / {'link' if r['budget_per_link'] else 'team'} / step"
+        return (
+            f"{r['budget']:g} bits / {'link' if r['budget_per_link'] else 'team'} / step, "
+            f"engaged at success {r['engage_success']:g}"
+        )
 
     for r in rows:
         lines.append(
@@ -150,7 +192,7 @@ def each_report(folders: tuple[Path, ...], out: Path) -> list[str]:
             f"{r['seeds']} | "
             f"{fmt(r['success'], 3)} | {fmt(r['episode_length'], 1)} | "
             f"{fmt(r['payload_bits'], 1)} | {fmt(r['wire_bits'], 1)} | "
-            f"{fmt(r['links_per_step'], 1)} | {r['env_steps']:,} |"
+            f"{fmt(r['links_per_step'], 1)} | {r['env_steps']:,} | {r['updates']} | {r['device']} |"
         )
     fig, ax = plt.subplots(1, 3, figsize=(13, 3.4))
     arms = (
@@ -171,9 +213,10 @@ def each_report(folders: tuple[Path, ...], out: Path) -> list[str]:
     ax[0].set(xlabel="agents K", ylabel="success (all parked), eval", ylim=(-0.03, 1.03))
     ax[0].set(xlim=(0, 32), xticks=(3, 10, 20, 30))  # the Ks of the issue, whichever were run
     ax[0].legend(fontsize=7)
-    for f, r in zip(folders, rows, strict=True):
+    for f, r in zip(folders, new, strict=True):
         c = read_csv(f / "metrics.csv")
-        per_seed = [c["success_rate"][c["seed"] == s] for s in np.unique(c["seed"])]
+        kept = _kept(f, seeds)[1]
+        per_seed = [c["success_rate"][c["seed"] == s] for s in kept]
         n = min(len(v) for v in per_seed)
         mean = np.mean([v[:n] for v in per_seed], 0)
         label = f"K = {r['K']}, {'talking' if r['comm'] else 'silent'} ({r['seeds']} seeds)"
@@ -182,12 +225,13 @@ def each_report(folders: tuple[Path, ...], out: Path) -> list[str]:
         line = ax[1].plot(np.arange(1, n + 1), smooth(mean, 25), label=label)[0]
         if r["comm"]:
             per_link = [
-                (c["bits_per_step"] / c["links_per_step"])[c["seed"] == s][:n]
-                for s in np.unique(c["seed"])
+                (c["bits_per_step"] / c["links_per_step"])[c["seed"] == s][:n] for s in kept
             ]
             ax[2].plot(
                 np.arange(1, n + 1), smooth(np.mean(per_link, 0), 25), color=line.get_color()
             )
+            if r["budget"] is not None and r["budget_per_link"]:
+                ax[2].axhline(r["budget"], color=line.get_color(), ls=":", lw=1)  # the budget
     ax[1].set(xlabel="update (32 episodes)", ylabel="success, training batches")
     ax[1].legend(fontsize=7)
     ax[2].set(xlabel="update (32 episodes)", ylabel="payload bits per link per step, training")
@@ -200,7 +244,7 @@ def each_report(folders: tuple[Path, ...], out: Path) -> list[str]:
 def main(a: Args) -> None:
     a.out.mkdir(parents=True, exist_ok=True)
     if a.each_runs:
-        each = each_report(a.each_runs, a.out)
+        each = each_report(a.each_runs, a.out, a.seeds, a.previous)
         (a.out / "each.md").write_text("\n".join(each) + "\n")
         print("\n".join(each))
         if a.throughput is None and not a.runs:
