@@ -105,12 +105,18 @@ def expected_frame_bits(
     g = jnp.ones(x.shape[:-1], jnp.float32) if gate is None else jnp.asarray(gate, jnp.float32)
     lo = jnp.clip(jnp.floor(jax.lax.stop_gradient(x)), 0, levels).astype(jnp.int32)
     table = np.asarray(wire_lengths, np.int64)
-    hi = np.minimum(np.arange(levels + 1) + 1, levels)
     k = jnp.arange(c)
     len_lo = jnp.asarray(table, jnp.float32)[k, lo]  # (..., L, C) bits of the lower symbol
-    dlen = jnp.asarray(table[:, hi] - table, jnp.float32)[k, lo]  # and the step up's
+    dlen = jnp.asarray(_step_up(table), jnp.float32)[k, lo]  # and the step up's
     frame = _FrameShape.of(table, num_links, check_bits)
     return _frame_bits(frame, x - lo, g, len_lo, dlen, (lo == 0).astype(jnp.float32))
+
+
+def _step_up(table: np.ndarray) -> np.ndarray:
+    """(C, levels + 1) the bits each element's symbol gains by one step up to the next symbol,
+    from a (C, levels + 1) length table (0 at the top symbol, which has no next)."""
+    hi = np.minimum(np.arange(table.shape[1]) + 1, table.shape[1] - 1)
+    return table[:, hi] - table
 
 
 @dataclasses.dataclass(frozen=True)
@@ -138,12 +144,11 @@ class _FrameShape:
     @functools.lru_cache(maxsize=64)
     def _build(lengths: bytes, shape: tuple, num_links: int, check_bits: int) -> _FrameShape:
         table = np.frombuffer(lengths, np.int64).reshape(shape)
-        c, levels = shape[0], shape[1] - 1
+        c = shape[0]
         d = math.gcd(8, c, *np.unique(table).tolist())
         period = 8 // d
         omega = tuple(range(1, period // 2 + 1))
-        hi = np.minimum(np.arange(levels + 1) + 1, levels)
-        ups = sorted(set((((table[:, hi] - table) // d) % period).ravel().tolist()) - {0})
+        ups = sorted(set(((_step_up(table) // d) % period).ravel().tolist()) - {0})
         r = np.arange(period)
         pad = (-(num_links + d * r)) % 8
         return _FrameShape(
