@@ -204,7 +204,11 @@ def each_report(
         sel = sorted((r for r in rows if keep(r)), key=lambda r: r["K"])
         if not sel:
             continue
-        ks = [r["K"] + shift for r in sel]  # the budget's points beside λ 0's
+        # the budget's points beside λ 0's, and beside each other at the same K
+        ks = [
+            r["K"] + shift * (1 + [o["K"] for o in sel[:i]].count(r["K"]))
+            for i, r in enumerate(sel)
+        ]
         mean = np.array([r["success"][0] for r in sel])
         err = np.array(
             [[m - r["success"][1], r["success"][2] - m] for m, r in zip(mean, sel, strict=True)]
@@ -221,7 +225,7 @@ def each_report(
         mean = np.mean([v[:n] for v in per_seed], 0)
         label = f"K = {r['K']}, {'talking' if r['comm'] else 'silent'} ({r['seeds']} seeds)"
         if r["budget"] is not None:
-            label = f"K = {r['K']}, {budget(r)} ({r['seeds']} seeds)"
+            label = f"K = {r['K']}, {budget(r)} ({r['seeds']} seeds, {r['device'].split(':')[0]})"
         line = ax[1].plot(np.arange(1, n + 1), smooth(mean, 25), label=label)[0]
         if r["comm"]:
             per_link = [
