@@ -20,16 +20,19 @@ None of their code is in this repository; fetch it into a scratch folder outside
 
 Their ``make_train(config)`` is called with their config file's values, except ``ENV_NAME``,
 ``TOTAL_TIMESTEPS``, ``NUM_SEEDS`` (1) and ``SEED``; ``wandb`` is replaced by an object whose
-``log`` does nothing. Each seed is its own compiled program (their ``main`` vmaps over
-``NUM_SEEDS`` keys; vmapped over 5 seeds the program stalled on the 2-core VM, every thread
-idle). Each seed's returns go to ``OUT.seedS.json`` as it ends, and a later call with the
+``log`` does nothing (and stands in for the module where it is not installed). Each seed is its
+own compiled program (their ``main`` vmaps over ``NUM_SEEDS`` keys; vmapped over 2 or 5 seeds
+the program stalled on the 2-core VM, every thread idle). Each seed's returns go to
+``OUT.seedS.json`` as it ends, with the device and jax that ran it, and a later call with the
 same ``--out`` and ``--steps`` reads them instead of running the seed again, so a run longer
-than a session continues where it stopped. The return is their
+than a session continues where it stopped; ``--seed S --seeds 1`` runs one seed, so several
+processes can run seeds side by side. The return is their
 ``returned_episode_returns`` (``MPELogWrapper`` multiplies each agent's return by the number of
 agents) averaged over agents, steps and environments: on
 simple_reference the two agents' rewards sum to minus both distances to the goals, so this is
 docs/plugin.md's team return. The final figure is the mean over the last 5% of updates (training
-episodes, the sampled policy). Env steps per second are timed with the compile apart.
+episodes, the sampled policy). Env steps per second are timed with the compile apart, per
+device (``by_device``: a seed's time counts where it ran).
 """
 
 from __future__ import annotations
@@ -78,6 +81,10 @@ class _NoLog:
 def main(a: Args) -> dict:
     from omegaconf import OmegaConf  # their config loader (in the scratch environment)
 
+    try:
+        import wandb  # noqa: F401  (their import; absent where nothing can be installed)
+    except ImportError:
+        sys.modules["wandb"] = _NoLog()
     folder, names = a.algo.split("/")
     script, config_name = names.split(":")
     base = a.baselines / folder
@@ -86,42 +93,50 @@ def main(a: Args) -> dict:
     module.wandb = _NoLog()
     config = OmegaConf.to_container(OmegaConf.load(base / "config" / f"{config_name}.yaml"))
     config.update(ENV_NAME=a.env, TOTAL_TIMESTEPS=a.steps, NUM_SEEDS=1, SEED=a.seed)
-    returns, compile_s, run_s = [], 0.0, 0.0
-    for seed in range(a.seed, a.seed + a.seeds):
-        done = a.out.with_name(f"{a.out.stem}.seed{seed}.json")  # a seed already run is kept
-        if done.exists() and json.loads(done.read_text())["steps"] == a.steps:
-            one = json.loads(done.read_text())
-            print(f"seed {seed}: read from {done}", flush=True)
-        else:
-            keys = jax.random.split(jax.random.PRNGKey(seed), 1)
-            start = time.perf_counter()
-            train = jax.jit(jax.vmap(module.make_train(dict(config, SEED=seed))))
-            train = train.lower(keys).compile()
-            one = {"steps": a.steps, "compile_s": time.perf_counter() - start}
-            start = time.perf_counter()
-            out = jax.block_until_ready(train(keys))
-            one["run_s"] = time.perf_counter() - start
-            ret = np.asarray(out["metrics"]["returned_episode_returns"])  # (1, updates, .., agents)
-            one["returns"] = ret.reshape(ret.shape[1], -1).mean(-1).tolist()  # (updates,) team
-            done.write_text(json.dumps(one))
-            print(f"seed {seed}: {one['run_s']:.0f} s -> {done}", flush=True)
-        compile_s += one["compile_s"]
-        run_s += one["run_s"]
-        returns.append(np.asarray(one["returns"]))
+    seeds = list(range(a.seed, a.seed + a.seeds))
+    files = {seed: a.out.with_name(f"{a.out.stem}.seed{seed}.json") for seed in seeds}
+    done = {}  # a seed already run is kept
+    for seed, path in files.items():
+        if path.exists() and json.loads(path.read_text())["steps"] == a.steps:
+            done[seed] = json.loads(path.read_text())
+            print(f"seed {seed}: read from {path}", flush=True)
+    for seed in [seed for seed in seeds if seed not in done]:
+        keys = jax.random.split(jax.random.PRNGKey(seed), 1)
+        start = time.perf_counter()
+        train = jax.jit(jax.vmap(module.make_train(dict(config, SEED=seed))))
+        train = train.lower(keys).compile()
+        one = {"steps": a.steps, "compile_s": time.perf_counter() - start}
+        start = time.perf_counter()
+        out = jax.block_until_ready(train(keys))
+        one["run_s"] = time.perf_counter() - start
+        one["device"] = jax.devices()[0].device_kind  # where run_s was timed
+        one["jax"] = jax.__version__
+        ret = np.asarray(out["metrics"]["returned_episode_returns"])  # (1, updates, .., agents)
+        one["returns"] = ret.reshape(ret.shape[1], -1).mean(-1).tolist()  # (updates,) team
+        files[seed].write_text(json.dumps(one))
+        done[seed] = one
+        print(f"seed {seed}: {one['run_s']:.0f} s on {one['device']} -> {files[seed]}", flush=True)
+    returns = [np.asarray(done[seed]["returns"]) for seed in seeds]
+    timing = {}  # each device's seeds and seconds: env steps per second are per device
+    for one in done.values():
+        t = timing.setdefault(one["device"], {"seeds": 0, "compile_s": 0.0, "run_s": 0.0})
+        t["seeds"] += 1
+        t["compile_s"] += one["compile_s"]
+        t["run_s"] += one["run_s"]
     returns = np.stack(returns)  # (seeds, updates)
     updates = returns.shape[1]
     final = returns[:, -max(1, updates // 20) :].mean(1)
     env_steps = config["NUM_ENVS"] * config["NUM_STEPS"] * updates
+    for t in timing.values():
+        t["env_steps_per_s"] = env_steps * t["seeds"] / t["run_s"]
     result = {
         "algo": a.algo,
         "env": a.env,
         "config": config,
-        "seeds": list(range(a.seed, a.seed + a.seeds)),
+        "seeds": seeds,
         "updates": updates,
         "env_steps_per_seed": env_steps,
-        "compile_s": compile_s,
-        "run_s": run_s,
-        "env_steps_per_s": env_steps * a.seeds / run_s,
+        "by_device": timing,
         "final_return_per_seed": final.tolist(),
         "final_return_mean": float(final.mean()),
         "curve_mean": returns.mean(0)[:: max(1, updates // 200)].tolist(),
