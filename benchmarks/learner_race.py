@@ -38,13 +38,18 @@ from sparsecomm.stats import first_pass
 
 
 def parse_learner(text: str) -> tuple[str, dict]:
-    """``NAME:FIELD=VALUE,...`` -> (name, overrides), each value parsed by its field's type."""
+    """``NAME:FIELD=VALUE,...`` -> (name, overrides), each value parsed by its field's type; a
+    field of a nested config is named with dots (``agent.message_gate=hard``)."""
     name, _, rest = text.partition(":")
-    types = {f.name: f.type for f in dataclasses.fields(RLConfig)}
     overrides = {}
     for item in filter(None, rest.split(",")):
         field, _, value = item.partition("=")
-        kind = str(types[field])  # e.g. "int", "float | None" (the annotation's text)
+        owner = RLConfig()
+        *path, last = field.split(".")
+        for part in path:
+            owner = getattr(owner, part)
+        types = {f.name: f.type for f in dataclasses.fields(owner)}
+        kind = str(types[last])  # e.g. "int", "float | None" (the annotation's text)
         if value == "None" and "None" in kind:
             overrides[field] = None
         elif kind.startswith("int"):
@@ -58,8 +63,30 @@ def parse_learner(text: str) -> tuple[str, dict]:
     return name, overrides
 
 
+def make_config(overrides: dict) -> RLConfig:
+    """``RLConfig()`` with the overrides of :func:`parse_learner` (dotted names nested), each
+    config built once with all of its fields (a field's rule may read another's)."""
+
+    def build(config, fields: dict):
+        nested = {}
+        for field, value in fields.items():
+            head, _, rest = field.partition(".")
+            nested.setdefault(head, {} if rest else value)
+            if rest:
+                nested[head][rest] = value
+        return dataclasses.replace(
+            config,
+            **{
+                k: build(getattr(config, k), v) if isinstance(v, dict) else v
+                for k, v in nested.items()
+            },
+        )
+
+    return build(RLConfig(), overrides)
+
+
 def race(name: str, overrides: dict, args) -> dict:
-    cfg = RLConfig(**{"seed": args.seed, **overrides})
+    cfg = make_config({"seed": args.seed, **overrides})
     tr = make_train(cfg)
     steps_per_update = cfg.num_envs * cfg.env.max_steps
     chunk = max(1, round(args.chunk_env_steps / steps_per_update))
