@@ -129,15 +129,22 @@ def evaluate(learner, env, cfg, params, key, episodes: int, comm: str) -> dict:
     return m
 
 
-def run_arm(a: Args, comm: str, budget: float | None) -> dict:
+def arm(a: Args, comm: str, budget: float | None):
+    """One arm's environment, config, learner, and the training of every seed as one program
+    with its arguments: ``program(*args)`` -> (state, curves), each leaf with a seeds axis."""
     env = SimpleReference(ReferenceConfig(comm=comm))
     cfg = config_of(a, comm)
     learner = make_train(cfg, env=env)
     keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(a.seeds) + a.seed)
     b = jnp.nan if budget is None else budget
-    start = time.perf_counter()
-    state, curves = jax.jit(jax.vmap(learner.train, in_axes=(0, None, None)))(keys, 0.0, b)
-    jax.block_until_ready(state)
+    program = jax.jit(jax.vmap(learner.train, in_axes=(0, None, None)))
+    return env, cfg, learner, program, (keys, 0.0, b)
+
+
+def run_arm(a: Args, comm: str, budget: float | None) -> dict:
+    env, cfg, learner, program, args = arm(a, comm, budget)
+    start = time.perf_counter()  # compiling included
+    state, curves = jax.block_until_ready(program(*args))
     seconds = time.perf_counter() - start
     evals = []
     for s in range(a.seeds):
@@ -193,13 +200,10 @@ def plot(rows: list[dict], a: Args, path: Path) -> None:
 
 def time_arm(a: Args, comm: str, budget: float | None) -> float:
     """Env steps per second of one arm's training (all seeds in one program), compile apart."""
-    learner = make_train(config_of(a, comm), env=SimpleReference(ReferenceConfig(comm=comm)))
-    keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(a.seeds) + a.seed)
-    b = jnp.nan if budget is None else budget
-    train = jax.jit(jax.vmap(learner.train, in_axes=(0, None, None))).lower(keys, 0.0, b)
-    train = train.compile()
+    *_, program, args = arm(a, comm, budget)
+    train = program.lower(*args).compile()
     start = time.perf_counter()
-    jax.block_until_ready(train(keys, 0.0, b))
+    jax.block_until_ready(train(*args))
     rate = a.num_updates * a.num_envs * 25 * a.seeds / (time.perf_counter() - start)
     print(f"{comm} (budget {budget}), {a.seeds} seeds: {rate:,.0f} env steps/s", flush=True)
     return rate
