@@ -112,7 +112,7 @@ def main(a: Args) -> dict:
         one["device"] = jax.devices()[0].device_kind  # where run_s was timed
         one["jax"] = jax.__version__
         ret = np.asarray(out["metrics"]["returned_episode_returns"])  # (1, updates, .., agents)
-        one["returns"] = ret.reshape(ret.shape[1], -1).mean(-1).tolist()  # (updates,) team
+        one["returns"] = np.round(ret.reshape(ret.shape[1], -1).mean(-1), 4).tolist()  # (updates,)
         files[seed].write_text(json.dumps(one))
         done[seed] = one
         print(f"seed {seed}: {one['run_s']:.0f} s on {one['device']} -> {files[seed]}", flush=True)
