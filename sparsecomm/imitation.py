@@ -43,8 +43,12 @@ def oracle_expert(env: NavigationEnv) -> Expert:
 
 def team_expert(team: Team, channel_cfg, actor_params) -> Expert:
     """A trained team as an :class:`Expert`: it talks among itself over its own channel (fresh
-    dither keys), and only its actions leave it. Acts greedily. A team whose links follow
-    positions or whose inbox is aggregated (``sparsecomm.scaling``) is refused."""
+    dither keys, no noise on the wire), and only its actions leave it. Acts greedily. Its links
+    behave as in :func:`sparsecomm.rollout.rollout`: a gated link that falls silent leaves its
+    recipient holding the last message (``ChannelConfig.holds``, read with its news flags), news
+    opens a gate (``news_margin``), and a team that ``reads_sent`` reads its own links back. A
+    team whose links follow positions or whose inbox is aggregated (``sparsecomm.scaling``) is
+    refused."""
     if team.routed or team.cfg.aggregate != "concat":
         raise ValueError(
             "a team expert must use AgentConfig.neighbours = radius = None and aggregate "
@@ -52,18 +56,42 @@ def team_expert(team: Team, channel_cfg, actor_params) -> Expert:
         )
     k = team.num_agents
     c = channel_cfg.num_elements
+    holds = channel_cfg.holds
+    keeps_sent = team.reads_sent or channel_cfg.news_margin is not None
+    width = (k - 1) * (c + holds) + ((k - 1) * c if team.reads_sent else 0)
 
     def init(batch):
         keys = jax.random.split(jax.random.key(12345), batch)
-        msgs = jnp.zeros((batch, k, (k - 1) * c), jnp.float32)
-        return (team.initial_carry(batch), msgs, keys, jnp.zeros((), jnp.int32))
+        links = jnp.zeros((batch, k, k - 1, c), jnp.float32)
+        return dict(
+            h=team.initial_carry(batch),
+            msgs=jnp.zeros((batch, k, width), jnp.float32),
+            keys=keys,
+            t=jnp.zeros((), jnp.int32),
+            prev=jnp.zeros((batch, k, k - 1, c), jnp.int32),
+            last=links if holds else None,
+            sent=links if keeps_sent else None,
+        )
 
     def step(carry, key, state, obs):
-        h, msgs, keys, t = carry
-        h, logits, z = team.act(actor_params, h, obs, msgs)
+        keys, t = carry["keys"], carry["t"]
+        h, logits, z = team.act(actor_params, carry["h"], obs, carry["msgs"])
+        if carry["sent"] is not None:  # a link with news opens its gate
+            z = channel.news_gate(channel_cfg, z, carry["sent"])
         u = channel.step_dither(channel_cfg, keys, t, k)
-        msgs = channel.deliver(channel.transmit(channel_cfg, z, u, keys, t).z_hat)
-        return (h, msgs, keys, t + 1), jnp.argmax(logits, -1)
+        sent = channel.transmit(channel_cfg, z, u, keys, t, carry["prev"])
+        silent = sent.wire_bits == 0 if holds and sent.speak is None else None
+        got = channel.receive(
+            channel_cfg, sent.z_hat, u, last=carry["last"], speak=sent.speak, silent=silent
+        )
+        msgs = channel.deliver(got.z_hat)
+        if got.news is not None:  # which messages are news, by recipient
+            msgs = jnp.concatenate([msgs, channel.inbox(got.news)], -1)
+        own = channel.last_delivered(sent, carry["sent"]) if keeps_sent else None
+        if team.reads_sent:
+            msgs = jnp.concatenate([msgs, own.reshape(*msgs.shape[:2], -1)], -1)
+        carry = dict(h=h, msgs=msgs, keys=keys, t=t + 1, prev=sent.symbols, last=got.last, sent=own)
+        return carry, jnp.argmax(logits, -1)
 
     return Expert(init=init, step=step)
 

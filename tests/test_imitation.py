@@ -119,6 +119,47 @@ def test_trained_team_can_be_the_expert(tmp_path, fast_compile):
         ILConfig(expert="checkpoint")
 
 
+@pytest.mark.parametrize(
+    "chan",
+    [
+        ChannelConfig(),
+        ChannelConfig(link_gate=True, on_silence="hold", news_margin=0.1),
+    ],
+    ids=["paper", "silent_on_news"],
+)
+def test_team_expert_plays_the_rollouts_greedy_episode(chan, fast_compile):
+    """Given the rollout's channel keys, a team expert's actions are the rollout's greedy
+    actions at every step: its links (gates, held messages, news) behave as the rollout's."""
+    from sparsecomm.configs import RLConfig
+    from sparsecomm.imitation import team_expert
+    from sparsecomm.learner import make_team
+    from sparsecomm.rollout import agent_draws, world_draws
+
+    cfg = RLConfig(
+        env=NavConfig(max_steps=24), channel=chan, agent=AgentConfig(message_gate="hard")
+    )
+    env, team = make_team(cfg)
+    actor = team.init(jax.random.key(1))["actor"]
+    key, n, t_max = jax.random.key(2), 8, cfg.env.max_steps
+    traj = rollout(team, env, chan, actor, key, n, greedy=True)
+    expert = team_expert(team, chan, actor)
+    reset_keys, env_keys = world_draws(key, n, t_max)
+    carry = expert.init(n)
+    carry["keys"] = agent_draws(key, n, t_max, env.num_agents, team.num_actions)[0]
+    obs, state = jax.vmap(env.reset)(reset_keys)
+    speaking = 0.0
+    for t in range(t_max):
+        carry, actions = expert.step(carry, None, state, obs)
+        valid = np.asarray(traj.valid[t])
+        np.testing.assert_array_equal(
+            np.asarray(actions)[valid], np.asarray(traj.actions[t])[valid]
+        )
+        obs, state, *_ = jax.vmap(env.step)(env_keys[t], state, actions)
+        speaking += float(traj.speaking[t].sum())
+    links = t_max * n * env.num_agents * (env.num_agents - 1)
+    assert 0 < speaking < links if chan.link_gate else speaking == links
+
+
 @pytest.mark.slow
 def test_short_imitation_lowers_loss_and_raises_success():
     """CI learning test: 140 DAgger updates of 32 episodes from the oracle, on CPU."""
