@@ -3,7 +3,10 @@
 Each learner (a name and ``RLConfig`` overrides) trains its seeds as one vmapped program, in
 chunks of updates, one learner after the other in the same process, until the mean training
 success over its seeds, as a moving average over ``--window`` updates, first exceeds
-``--target`` (then ``--extra`` more updates), or ``--max-env-steps`` / ``--max-wall`` runs out.
+``--target`` (then ``--extra`` more updates, or ``--extra-for NAME=N``'s for that learner), or
+``--max-env-steps`` / ``--max-wall`` runs out, or, for every learner after the first, its
+wall-clock passes ``--max-wall-ratio`` times the first learner's wall-clock to the target (it is
+then at least that many times slower, which is all a race for a ratio needs to know).
 Seed s of every learner is ``key(seed + s)``, the key ``sparsecomm train --seeds N`` gives it.
 Then each seed's team is evaluated on ``--eval-episodes`` fresh episodes. Env steps count whole
 episodes (``num_envs * max_steps`` per update), as docs/rl.md does; wall-clock includes
@@ -85,7 +88,7 @@ def make_config(overrides: dict) -> RLConfig:
     return build(RLConfig(), overrides)
 
 
-def race(name: str, overrides: dict, args) -> dict:
+def race(name: str, overrides: dict, args, max_wall: float, extra: int) -> dict:
     cfg = make_config({"seed": args.seed, **overrides})
     tr = make_train(cfg)
     steps_per_update = cfg.num_envs * cfg.env.max_steps
@@ -107,7 +110,7 @@ def race(name: str, overrides: dict, args) -> dict:
         if passed is None:
             passed = first_pass(np.asarray(success), args.target, args.window)
             if passed is not None:
-                stop_at = done + args.extra
+                stop_at = done + extra
         print(
             f"[{name}] update {done:5d} env steps {done * steps_per_update / 1e6:6.1f}M "
             f"wall {walls[-1]:6.0f}s success {np.mean(success[-chunk:]):.3f} "
@@ -117,7 +120,7 @@ def race(name: str, overrides: dict, args) -> dict:
         )
         if stop_at is not None and done >= stop_at:
             break
-        if done * steps_per_update >= args.max_env_steps or walls[-1] >= args.max_wall:
+        if done * steps_per_update >= args.max_env_steps or walls[-1] >= max_wall:
             break
     train_s = walls[-1]
     ev = jax.jit(jax.vmap(lambda p, k: tr.evaluate(p, k, args.eval_episodes)))
@@ -139,6 +142,8 @@ def race(name: str, overrides: dict, args) -> dict:
         env_steps_per_update=steps_per_update,
         compile_s=compile_s,
         train_s=train_s,
+        max_wall_s=max_wall,
+        extra=extra,
         success=success,
         episode_length=length,
         chunk_wall_s=walls,
@@ -157,9 +162,21 @@ def main():
     p.add_argument("--target", type=float, default=0.95)
     p.add_argument("--window", type=int, default=10, help="updates in the moving average")
     p.add_argument("--extra", type=int, default=0, help="updates to run past the target")
+    p.add_argument(
+        "--extra-for",
+        action="append",
+        default=[],
+        help="NAME=N: updates past the target for that learner (instead of --extra)",
+    )
     p.add_argument("--chunk-env-steps", type=float, default=1e6, help="env steps per chunk")
     p.add_argument("--max-env-steps", type=float, default=60e6, help="per seed")
     p.add_argument("--max-wall", type=float, default=3600.0, help="seconds per learner")
+    p.add_argument(
+        "--max-wall-ratio",
+        type=float,
+        default=None,
+        help="stop a later learner at this many times the first one's wall-clock to the target",
+    )
     p.add_argument("--eval-episodes", type=int, default=500)
     p.add_argument("--out", default="race.json")
     args = p.parse_args()
@@ -175,9 +192,15 @@ def main():
         window=args.window,
         learners=[],
     )
+    extra_for = dict(item.split("=") for item in args.extra_for)
     for text in args.learner:
         name, overrides = parse_learner(text)
-        results["learners"].append(race(name, overrides, args))
+        max_wall = args.max_wall
+        first = results["learners"][0] if results["learners"] else None
+        if args.max_wall_ratio and first and first["wall_s_to_target"] is not None:
+            max_wall = min(max_wall, args.max_wall_ratio * first["wall_s_to_target"])
+        extra = int(extra_for.get(name, args.extra))
+        results["learners"].append(race(name, overrides, args, max_wall, extra))
         with open(args.out, "w") as f:
             json.dump(results, f)
     for r in results["learners"]:
