@@ -176,6 +176,14 @@ def test_the_paper_preset_is_the_fast_learner_on_the_paper_task():
     il = parse(["imitate", "--preset", "paper"]).config  # docs/budget.md's controller v6 runs
     assert il.env == ILConfig().env and il.agent.message_gate == "hard" and il.num_envs == 32
     assert (il.num_updates, il.budget.halving_updates, il.budget.relief_floor) == (1000, 40, 0.1)
+    fast = parse(["train", "--preset", "paper_fast"]).config  # docs/paper-task.md's race
+    assert fast.env == RLConfig().env and fast.agent.message_gate == "hard"
+    assert (fast.num_envs, fast.lr_final, fast.lr_decay_steps, fast.num_updates) == (
+        16,
+        1e-4,
+        2000,
+        1750,
+    )
     serves = "--preset paper serves only 'sparsecomm train' and 'sparsecomm imitate', not 'eval'"
     with pytest.raises(ValueError, match=serves):
         parse(["eval", "--preset", "paper"])
