@@ -26,7 +26,7 @@ from sparsecomm.configs import ILConfig
 from sparsecomm.envs.navigation import NavigationEnv
 from sparsecomm.envs.oracle import oracle_actions
 from sparsecomm.learner import Learner, LossAux, make_learner, make_team, masked_mean
-from sparsecomm.rollout import Expert, episode_metrics, rollout
+from sparsecomm.rollout import Expert, episode_metrics, exchange, rollout
 
 
 def oracle_expert(env: NavigationEnv) -> Expert:
@@ -44,9 +44,10 @@ def oracle_expert(env: NavigationEnv) -> Expert:
 def team_expert(team: Team, channel_cfg, actor_params) -> Expert:
     """A trained team as an :class:`Expert`: it talks among itself over its own channel (fresh
     dither keys, no noise on the wire), and only its actions leave it. Acts greedily. Its links
-    behave as in :func:`sparsecomm.rollout.rollout`: a gated link that falls silent leaves its
-    recipient holding the last message (``ChannelConfig.holds``, read with its news flags), news
-    opens a gate (``news_margin``), and a team that ``reads_sent`` reads its own links back. A
+    are the rollout's, step for step (:func:`sparsecomm.rollout.exchange`): a gated link that
+    falls silent leaves its recipient holding the last message (``ChannelConfig.holds``, read
+    with its news flags), news opens a gate (``news_margin``), and a team that ``reads_sent``
+    reads its own links back. A
     team whose links follow positions or whose inbox is aggregated (``sparsecomm.scaling``) is
     refused."""
     if team.routed or team.cfg.aggregate != "concat":
@@ -76,21 +77,27 @@ def team_expert(team: Team, channel_cfg, actor_params) -> Expert:
     def step(carry, key, state, obs):
         keys, t = carry["keys"], carry["t"]
         h, logits, z = team.act(actor_params, carry["h"], obs, carry["msgs"])
-        if carry["sent"] is not None:  # a link with news opens its gate
-            z = channel.news_gate(channel_cfg, z, carry["sent"])
         u = channel.step_dither(channel_cfg, keys, t, k)
-        sent = channel.transmit(channel_cfg, z, u, keys, t, carry["prev"])
-        silent = sent.wire_bits == 0 if holds and sent.speak is None else None
-        got = channel.receive(
-            channel_cfg, sent.z_hat, u, last=carry["last"], speak=sent.speak, silent=silent
+        ex = exchange(
+            channel_cfg,
+            team.reads_sent,
+            z,
+            u,
+            keys,
+            t,
+            carry["prev"],
+            last=carry["last"],
+            held=carry["sent"],
         )
-        msgs = channel.deliver(got.z_hat)
-        if got.news is not None:  # which messages are news, by recipient
-            msgs = jnp.concatenate([msgs, channel.inbox(got.news)], -1)
-        own = channel.last_delivered(sent, carry["sent"]) if keeps_sent else None
-        if team.reads_sent:
-            msgs = jnp.concatenate([msgs, own.reshape(*msgs.shape[:2], -1)], -1)
-        carry = dict(h=h, msgs=msgs, keys=keys, t=t + 1, prev=sent.symbols, last=got.last, sent=own)
+        carry = dict(
+            h=h,
+            msgs=ex.msgs,
+            keys=keys,
+            t=t + 1,
+            prev=ex.sent.symbols,
+            last=ex.got.last,
+            sent=ex.own,
+        )
         return carry, jnp.argmax(logits, -1)
 
     return Expert(init=init, step=step)

@@ -4,7 +4,8 @@ It serves reinforcement learning (the learners act), imitation (an expert acts, 
 act and an expert labels: DAgger) and evaluation. The channel itself (routing, dither, the
 sender side ``transmit`` and the receiver side ``receive`` of every mode) is
 :mod:`sparsecomm.channel.links`, its noise :mod:`sparsecomm.channel.lossy`; this module is the
-scan over them. Each
+scan over them, and :func:`exchange` one step of a team's links (the rollout's and a team
+expert's, ``imitation.team_expert``). Each
 batch element is one whole episode of ``env.max_steps`` steps; steps after the episode ended
 are computed but masked (``valid``).
 
@@ -232,34 +233,29 @@ def rollout(
                 )
             live = channel.live_links(channel_cfg, routing, k, (num_envs,))
             u = noise["dither"]
-            if keeps_sent:  # a link with news opens its gate (``news_margin``)
-                z = channel.news_gate(channel_cfg, z, carry.sent)
-        sent = channel.transmit(
-            channel_cfg, z, u, chan_keys, t, carry.prev_symbols, live=live, senders=senders
-        )
-        arrived, ok, links, lost = sent.z_hat, None, carry.links, None
+        wire = None
         if lossy is not None:  # packets lost, late, or corrupted
-            arrived, ok, links, lost = lossy.step(noise["loss"], sent, u, links)
-        got = channel.receive(
+
+            def wire(sent):
+                arrived, ok, links, lost = lossy.step(noise["loss"], sent, u, carry.links)
+                return arrived, ok, (links, lost)
+
+        ex = exchange(
             channel_cfg,
-            arrived,
+            team.reads_sent,
+            z,
             u,
-            ok=ok,
+            chan_keys,
+            t,
+            carry.prev_symbols,
             last=carry.last,
-            on_drop=channel_cfg.noise.on_drop,
+            held=carry.sent,
             live=live,
-            speak=sent.speak,
-            silent=sent.wire_bits == 0 if channel_cfg.holds and sent.speak is None else None,
+            senders=senders,
+            wire=wire,
         )
-        if gathered:  # already by recipient: its k listed links
-            msgs = got.z_hat.reshape(num_envs, k, -1)
-        else:
-            msgs = channel.deliver(got.z_hat)
-        if got.news is not None:  # which messages are news, by recipient
-            msgs = jnp.concatenate([msgs, channel.inbox(got.news)], -1)
-        own = channel.last_delivered(sent, carry.sent) if keeps_sent else None  # by sender
-        if team.reads_sent:  # each sender reads it back
-            msgs = jnp.concatenate([msgs, own.reshape(num_envs, k, -1)], -1)
+        sent, msgs = ex.sent, ex.msgs
+        links, lost = (carry.links, None) if lossy is None else ex.wire
         global_state = jax.vmap(env.global_state)(state)
         valid = ~state.done
         next_obs, next_state, rewards, dones, info = jax.vmap(env.step)(
@@ -299,9 +295,9 @@ def rollout(
             expert=expert_carry,
             prev_symbols=sent.symbols,
             links=links,
-            last=got.last,
+            last=ex.got.last,
             heard=None if live is None else live if gathered else channel.inbox(live),
-            sent=own,
+            sent=ex.own,
         )
         return carry, (record, (z, live) if later else None)
 
@@ -312,6 +308,87 @@ def rollout(
         z, live = priced
         return traj.replace(penalty=channel.price(channel_cfg, z, live).sum((-2, -1)))
     return traj
+
+
+class Exchange(NamedTuple):
+    """One step of a team's links (:func:`exchange`)."""
+
+    sent: channel.Sent  # the sender side, by sender slot (B, K, K-1, C) or listed (B, K, k, C)
+    got: channel.Received  # the receiver side, in the same layout
+    msgs: jax.Array  # (B, K, width) each recipient's inbox for the next step
+    own: Any  # (B, K, K-1, C) what each link last delivered, by sender (None: not kept)
+    wire: Any  # what ``wire`` returned beside the packets (None without it)
+
+
+def exchange(
+    channel_cfg: ChannelConfig,
+    reads_sent: bool,
+    z: jax.Array,
+    u,
+    keys: jax.Array,
+    t,
+    prev: jax.Array,
+    *,
+    last=None,
+    held=None,
+    live=None,
+    senders=None,
+    wire: Callable | None = None,
+) -> Exchange:
+    """One step of a team's channel, as the rollout and a team expert
+    (``imitation.team_expert``) both run it: a link with news opens its gate, the sender side,
+    the wire, the receiver side, and the messages routed to their recipients for the next step.
+
+    Args:
+      channel_cfg: the channel.
+      reads_sent: each sender reads back what its own links last delivered
+        (``Team.reads_sent``): its inbox ends with them.
+      z: (B, K, K-1, C) the message heads' outputs by sender slot, or (B, K, k, C) listed by
+        recipient with ``senders``.
+      u: each link's dither, laid out as ``z``.
+      keys: (B,) the episodes' channel keys; t: the step.
+      prev: (B, K, K-1, C) int32 each link's symbols at the previous step (or listed).
+      last: (B, K, K-1, C) each link's last good message, where a rule reads it
+        (``ChannelConfig.holds``, a lossy wire that keeps the last), else None.
+      held: (B, K, K-1, C) what each link last delivered, by sender, where a rule reads it
+        (``news_margin``, ``reads_sent``), else None.
+      live: (B, K, K-1) or (B, K, k) bool, the links that exist (None: all).
+      senders: (B, K, k) int32 each recipient's listed senders (``scaling.nearest_senders``),
+        or None for links by sender slot.
+      wire: ``wire(sent) -> (arrived, ok, extra)``: the noise between the sides
+        (``channel.lossy.LossyLinks.step``); None: every packet arrives as sent.
+
+    Returns:
+      :class:`Exchange`.
+    """
+    if held is not None and senders is None:  # a link with news opens its gate
+        z = channel.news_gate(channel_cfg, z, held)
+    sent = channel.transmit(channel_cfg, z, u, keys, t, prev, live=live, senders=senders)
+    arrived, ok, extra = sent.z_hat, None, None
+    if wire is not None:
+        arrived, ok, extra = wire(sent)
+    got = channel.receive(
+        channel_cfg,
+        arrived,
+        u,
+        ok=ok,
+        last=last,
+        on_drop=channel_cfg.noise.on_drop,
+        live=live,
+        speak=sent.speak,
+        silent=sent.wire_bits == 0 if channel_cfg.holds and sent.speak is None else None,
+    )
+    batch = got.z_hat.shape[:2]
+    if senders is not None:  # already by recipient: its k listed links
+        msgs = got.z_hat.reshape(*batch, -1)
+    else:
+        msgs = channel.deliver(got.z_hat)
+    if got.news is not None:  # which messages are news, by recipient
+        msgs = jnp.concatenate([msgs, channel.inbox(got.news)], -1)
+    own = None if held is None else channel.last_delivered(sent, held)  # by sender
+    if reads_sent:  # each sender reads it back
+        msgs = jnp.concatenate([msgs, own.reshape(*batch, -1)], -1)
+    return Exchange(sent, got, msgs, own, extra)
 
 
 def listed_links(team: Team, channel_cfg: ChannelConfig) -> bool:
