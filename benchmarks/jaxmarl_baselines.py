@@ -4,8 +4,10 @@ Their scripts run unchanged but for the environment's name, the budget, the seed
 None of their code is in this repository; fetch it into a scratch folder outside it:
 
     git clone https://github.com/FLAIROx/JaxMARL /tmp/jaxmarl       # their repository
-    python -m venv --system-site-packages /tmp/jm                     # this project's jax, flax
-    /tmp/jm/bin/pip install distrax hydra-core omegaconf wandb        # what their scripts import
+    python -m venv /tmp/jm                                            # a scratch environment
+    /tmp/jm/bin/pip install -c requirements-lock.txt jax flax optax numpy tyro distrax \
+        hydra-core omegaconf wandb safetensors chex matplotlib pillow jaxtyping gymnax
+    export PYTHONPATH=/tmp/jaxmarl                                    # their jaxmarl package
     # logging: delete the per-update wandb host callback (it stalls on a 2-core CPU, jax 0.10.2)
     sed -i 's/^\(\s*\)jax.experimental.io_callback(callback, None, metric)/\1pass/' \
         /tmp/jaxmarl/baselines/IPPO/ippo_ff_mpe.py /tmp/jaxmarl/baselines/MAPPO/mappo_rnn_mpe.py
@@ -25,8 +27,9 @@ own compiled program (their ``main`` vmaps over ``NUM_SEEDS`` keys; vmapped over
 the program stalled on the 2-core VM, every thread idle). Each seed's returns go to
 ``OUT.seedS.json`` as it ends, with the device and jax that ran it, and a later call with the
 same ``--out`` and ``--steps`` reads them instead of running the seed again, so a run longer
-than a session continues where it stopped; ``--seed S --seeds 1`` runs one seed, so several
-processes can run seeds side by side. The return is their
+than a session continues where it stopped (with every seed read back, only their config file
+and ``omegaconf`` are needed: their script is not imported); ``--seed S --seeds 1`` runs one
+seed, so several processes can run seeds side by side. The return is their
 ``returned_episode_returns`` (``MPELogWrapper`` multiplies each agent's return by the number of
 agents) averaged over agents, steps and environments: on
 simple_reference the two agents' rewards sum to minus both distances to the goals, so this is
@@ -88,9 +91,6 @@ def main(a: Args) -> dict:
     folder, names = a.algo.split("/")
     script, config_name = names.split(":")
     base = a.baselines / folder
-    sys.path.insert(0, str(base))
-    module = importlib.import_module(script)
-    module.wandb = _NoLog()
     config = OmegaConf.to_container(OmegaConf.load(base / "config" / f"{config_name}.yaml"))
     config.update(ENV_NAME=a.env, TOTAL_TIMESTEPS=a.steps, NUM_SEEDS=1, SEED=a.seed)
     seeds = list(range(a.seed, a.seed + a.seeds))
@@ -100,7 +100,12 @@ def main(a: Args) -> dict:
         if path.exists() and json.loads(path.read_text())["steps"] == a.steps:
             done[seed] = json.loads(path.read_text())
             print(f"seed {seed}: read from {path}", flush=True)
+    module = None  # their script, imported only where a seed is left to run
     for seed in [seed for seed in seeds if seed not in done]:
+        if module is None:
+            sys.path.insert(0, str(base))
+            module = importlib.import_module(script)
+            module.wandb = _NoLog()
         keys = jax.random.split(jax.random.PRNGKey(seed), 1)
         start = time.perf_counter()
         train = jax.jit(jax.vmap(module.make_train(dict(config, SEED=seed))))
