@@ -299,7 +299,7 @@ def rollout(
             heard=None if live is None else live if gathered else channel.inbox(live),
             sent=ex.own,
         )
-        return carry, (record, (z, live) if later else None)
+        return carry, (record, (ex.z, live) if later else None)
 
     if remat:
         step = jax.checkpoint(step)
@@ -318,6 +318,7 @@ class Exchange(NamedTuple):
     msgs: jax.Array  # (B, K, width) each recipient's inbox for the next step
     own: Any  # (B, K, K-1, C) what each link last delivered, by sender (None: not kept)
     wire: Any  # what ``wire`` returned beside the packets (None without it)
+    z: jax.Array  # the signals sent, after news opened gates: what ``channel.price`` prices
 
 
 def exchange(
@@ -388,7 +389,7 @@ def exchange(
     own = None if held is None else channel.last_delivered(sent, held)  # by sender
     if reads_sent:  # each sender reads it back
         msgs = jnp.concatenate([msgs, own.reshape(*batch, -1)], -1)
-    return Exchange(sent, got, msgs, own, extra)
+    return Exchange(sent, got, msgs, own, extra, z)
 
 
 def listed_links(team: Team, channel_cfg: ChannelConfig) -> bool:
