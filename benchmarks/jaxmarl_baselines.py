@@ -116,7 +116,7 @@ def main(a: Args) -> dict:
         one["run_s"] = time.perf_counter() - start
         one["device"] = jax.devices()[0].device_kind  # where run_s was timed
         one["jax"] = jax.__version__
-        ret = np.asarray(out["metrics"]["returned_episode_returns"])  # (1, updates, .., agents)
+        ret = np.asarray(out["metrics"]["returned_episode_returns"], np.float64)  # (1, updates, ..)
         one["returns"] = np.round(ret.reshape(ret.shape[1], -1).mean(-1), 4).tolist()  # (updates,)
         files[seed].write_text(json.dumps(one))
         done[seed] = one

@@ -26,7 +26,7 @@ from sparsecomm.configs import ILConfig
 from sparsecomm.envs.navigation import NavigationEnv
 from sparsecomm.envs.oracle import oracle_actions
 from sparsecomm.learner import Learner, LossAux, make_learner, make_team, masked_mean
-from sparsecomm.rollout import Expert, episode_metrics, exchange, rollout
+from sparsecomm.rollout import Expert, episode_metrics, exchange, keeps_delivered, rollout
 
 
 def oracle_expert(env: NavigationEnv) -> Expert:
@@ -58,7 +58,7 @@ def team_expert(team: Team, channel_cfg, actor_params) -> Expert:
     k = team.num_agents
     c = channel_cfg.num_elements
     holds = channel_cfg.holds
-    keeps_sent = team.reads_sent or channel_cfg.news_margin is not None
+    keeps_sent = keeps_delivered(team, channel_cfg)
     width = (k - 1) * (c + holds) + ((k - 1) * c if team.reads_sent else 0)
 
     def init(batch):

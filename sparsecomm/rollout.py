@@ -180,7 +180,7 @@ def rollout(
     noise.update(split_episodes({n: v for n, v in noise.items() if n in batched}, axis=1))
     heard_links = team.cfg.neighbours if gathered else k - 1  # links each recipient is listed
     sent_in = (k - 1) * c if team.reads_sent else 0  # what the agent's own links last delivered
-    keeps_sent = team.reads_sent or channel_cfg.news_margin is not None
+    keeps_sent = keeps_delivered(team, channel_cfg)
     later = channel_cfg.prices_later  # never with gathered links (``lists_links``)
     init = Carry(
         env_state=state,
@@ -319,6 +319,12 @@ class Exchange(NamedTuple):
     own: Any  # (B, K, K-1, C) what each link last delivered, by sender (None: not kept)
     wire: Any  # what ``wire`` returned beside the packets (None without it)
     z: jax.Array  # the signals sent, after news opened gates: what ``channel.price`` prices
+
+
+def keeps_delivered(team: Team, channel_cfg: ChannelConfig) -> bool:
+    """A team's links carry what each last delivered (:func:`exchange`'s ``held``): a rule reads
+    it (``ChannelConfig.news_margin``) or each sender reads it back (``Team.reads_sent``)."""
+    return team.reads_sent or channel_cfg.news_margin is not None
 
 
 def exchange(
