@@ -4,8 +4,9 @@ A refactor that should not change behaviour must leave these digests unchanged o
 machine (CPU, same jax): ``python scripts/param_digest.py`` before and after, and compare.
 Covers fixed-lambda and budgeted RL, shared and separate actor parameters, the reinforced
 channel baseline, DAgger imitation of the oracle, and the channel's paths: continuous, off,
-lossy and late links (fixed code, null and last), and links routed by position with
-aggregated inboxes.
+lossy and late links (fixed code, null and last), links that fall silent but speak on news
+(priced on the wire for RL, on the payload for imitation, each under a budget), and links
+routed by position with aggregated inboxes.
 
 ``--record tests/data/rl3.json`` writes the first case's record for ``tests/test_digest.py``:
 its digest, every parameter leaf's sum and norm, and the machine it ran on.
@@ -67,6 +68,14 @@ def cases() -> dict:
     """The cases, by name: ``(make, config, lambda, budget)``."""
     env = NavConfig(max_steps=24)
     rl = RLConfig(env=env, num_envs=8, seed=3)
+    hard = AgentConfig(message_gate="hard")
+    engaged = BudgetConfig(engage_success=0.0, relief_floor=0.5)
+    # links that fall silent but speak on news: priced on the wire (the `silent` preset's) and
+    # on the payload (the paper task's `NEWS`)
+    silent = ChannelConfig(
+        prices="wire", link_gate=True, on_silence="hold", check_bits=16, news_margin=0.1
+    )
+    news = ChannelConfig(link_gate=True, on_silence="hold", news_margin=0.1)
     return {
         "rl lam 0": (make_train, rl, 0.0, float("nan")),
         "rl lam 0.01": (make_train, rl, 0.01, float("nan")),
@@ -126,6 +135,18 @@ def cases() -> dict:
             ),
             0.01,
             float("nan"),
+        ),
+        "rl silent links, news, prices wire, budget 8": (
+            make_train,
+            dataclasses.replace(rl, agent=hard, channel=silent, budget=engaged),
+            0.0,
+            8.0,
+        ),
+        "il dagger, links held on silence, news": (
+            make_imitate,
+            ILConfig(env=env, num_envs=8, seed=3, agent=hard, channel=news, budget=engaged),
+            0.0,
+            8.0,
         ),
         "rl 4 agents, radius, mean, off": (
             make_train,
