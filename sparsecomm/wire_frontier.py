@@ -23,7 +23,9 @@ Reads the evaluations of trained sweeps (a run folder's ``results.json``, or the
   included: the folder's ``wall.csv``) at which the group's mean training success over its
   seeds, a moving average over :data:`WINDOW` updates, first exceeds 0.95 (``null``: never, or
   a folder without the logs). ``check_bits``, ``link_gate``, ``on_silence`` and
-  ``news_margin`` say the channel; a row replaces an earlier one of the same task, learner,
+  ``news_margin`` say the channel; ``per_seed`` holds each run's ``seed`` and figures (the
+  columns above, one value per seed), so that a row can be judged again after its run folder
+  is gone (:func:`seed_runs`). A row replaces an earlier one of the same task, learner,
   counts, budget, lambda and ``news_margin`` (:func:`row_key`).
 - ``frontier.png``: success against wire bits per step, and the share of link-steps that speak.
 
@@ -133,8 +135,24 @@ def rows(results: dict, config, task: str, learner: str, times: dict | None = No
         row["news_margin"] = config.channel.news_margin
         steps, wall_s = (times or {}).get((budget, lam), (None, None))
         row["env_steps_to_095"], row["wall_s_to_095"] = steps, wall_s
+        row["per_seed"] = {"seed": [r.get("seed") for r in runs]}
+        row["per_seed"] |= {name: [float(r[m]) for r in runs] for name, m in COLUMNS.items()}
         out.append(row)
     return out
+
+
+def seed_runs(row: dict) -> list[dict]:
+    """A summary row's runs back as evaluation runs (``results.json``'s fields: ``seed``,
+    ``lam``, ``budget`` and the metrics of :data:`COLUMNS`), one per seed, from its
+    ``per_seed``; ``[]`` for a row written without them."""
+    per = row.get("per_seed")
+    if not per:
+        return []
+    runs = [{"seed": seed, "lam": row["lam"], "budget": row["budget"]} for seed in per["seed"]]
+    for name, metric in COLUMNS.items():
+        for run, value in zip(runs, per[name], strict=True):
+            run[metric] = value
+    return runs
 
 
 def row_key(row: dict) -> tuple:

@@ -128,6 +128,11 @@ def test_wire_frontier_rows_count_the_network_from_the_datagrams():
     assert wire_frontier.row_key(other) != wire_frontier.row_key(row)
     legacy = {k: v for k, v in row.items() if k != "news_margin"}  # written before the field
     assert wire_frontier.row_key(legacy) == wire_frontier.row_key(row)
+    # the per-seed figures give the runs back, through JSON, for a verdict without the folder
+    back = wire_frontier.seed_runs(json.loads(json.dumps(row)))
+    keys = ("seed", "lam", "budget", *wire_frontier.COLUMNS.values())
+    assert back == [{k: r[k] for k in keys} for r in runs]
+    assert wire_frontier.seed_runs(legacy | {"per_seed": None}) == []
 
 
 def test_wire_frontier_rows_say_the_learner_and_when_its_mean_success_passed(tmp_path):

@@ -50,11 +50,17 @@ def test_every_part_then_the_issues_rows_and_verdicts(tmp_path, fast_compile):
     again = json.loads((results / "summary.json").read_text())
     key = lambda r: (r["part"], str(r["budget"]), r["lam"])  # noqa: E731
     assert sorted(again, key=key) == sorted(rows, key=key)
-    # A part whose run folder is gone (run in another session) keeps its rows.
-    shutil.rmtree(out / "il_rl")
+    # Each row keeps its runs' per-seed figures.
+    runs = json.loads((out / "rl_lams" / "results.json").read_text())["runs"]
+    (top,) = [r for r in rows if r["part"] == "rl_lams" and r["lam"] == 0.01]
+    assert top["per_seed"]["success"] == [r["success_rate"] for r in runs if r["lam"] == 0.01]
+    # Parts whose run folders are gone (run in another session) keep their rows and verdicts.
+    for part in ("il_rl", "rl_lams", "il_lams", "il_oracle"):
+        shutil.rmtree(out / part)
     assert len(summarise(PaperTask(out=out, results=results))) == len(rows)
     kept = json.loads((results / "summary.json").read_text())
     assert sorted(kept, key=key) == sorted(rows, key=key)
+    assert json.loads((results / "claims.json").read_text())["lambdas"] == verdicts["lambdas"]
 
 
 def test_bad_fields_are_refused_before_any_work(capsys):
@@ -68,3 +74,33 @@ def test_bad_fields_are_refused_before_any_work(capsys):
         main(["paper-task", "--budgets", "-1"])
     err = " ".join(capsys.readouterr().err.split())
     assert e.value.code == 2 and "PaperTask.budgets must be finite and >= 0" in err
+
+
+def test_lambda_verdicts_come_from_the_rows_or_stay_as_they_were():
+    """Claim 4 from rows alone (no run folder): lambdas 0.001 and 0.005 keep lambda 0's success
+    and length, 0.005 at a third of its bits, 0.01 collapses; rows without per-seed figures
+    (written before they existed) and parts without rows keep their earlier verdicts."""
+    from sparsecomm import wire_frontier
+    from sparsecomm.configs import RLConfig
+    from sparsecomm.paper_task import lambda_claims
+
+    def runs(lam, success, length, bits):
+        return [
+            {"seed": s, "lam": lam, "budget": None, "success_rate": success + 0.001 * s,
+             "episode_length": length + s, "bits_per_step": bits + s,
+             "wire_bits_per_step": 3 * bits, "speaking_fraction": 0.5}
+            for s in range(5)
+        ]  # fmt: skip
+
+    config = RLConfig()
+    zero = wire_frontier.rows({"runs": runs(0.0, 0.98, 60.0, 135.0)}, config, "paper", "rl")
+    lams = [(0.001, 0.98, 61.0, 90.0), (0.005, 0.98, 62.0, 45.0), (0.01, 0.0, 256.0, 2.0)]
+    lams = wire_frontier.rows({"runs": [r for p in lams for r in runs(*p)]}, config, "paper", "rl")
+    table = [r | {"part": "rl"} for r in zero] + [r | {"part": "rl_lams"} for r in lams]
+    earlier = [{"part": "rl_lams", "claim": 4, "held": False}, {"part": "il_lams", "claim": 5}]
+    verdict, kept = lambda_claims(table, earlier)  # no il_lams rows: its verdict is kept
+    assert (verdict["part"], verdict["claim"], verdict["held"]) == ("rl_lams", 4, True)
+    assert "λ=0.005: bits 47 " in verdict["evidence"] and kept == earlier[1]
+    legacy = [{k: v for k, v in r.items() if k != "per_seed"} for r in table]
+    assert lambda_claims(legacy, earlier) == earlier
+    assert lambda_claims(legacy, []) == []
