@@ -28,7 +28,13 @@ Then, from every part found in ``out``, it writes to ``results``:
 - ``frontier.png``: success against payload and wire bits (:func:`sparsecomm.frontier.plot`);
 - ``claims.json``: claims 4 and 5 at budget-matched points and at the paper's lambdas, and the
   issue's targets (budget 32, stretch 16, met within 10% at >= 95% of lambda 0's success with
-  episodes at most 1.25x its length: :func:`sparsecomm.frontier.targets`).
+  episodes at most 1.25x its length: :func:`sparsecomm.frontier.targets`), judged on sampled
+  actions (the convention of training, ``sparsecomm eval`` and deployed agents); with
+  ``greedy``, ``targets_greedy`` judges the same targets on the teams' most probable actions.
+
+With ``greedy`` every part's runs are evaluated a second time taking their most probable
+actions (``sparsecomm eval --greedy``, written to ``eval_greedy.json`` in the part's folder),
+and each row carries those figures under ``greedy``.
 
 docs/paper-task.md has the figures and the wall-clock of each part on 2 CPU cores.
 """
@@ -41,11 +47,11 @@ from pathlib import Path
 from sparsecomm import claims, frontier, wire_frontier
 from sparsecomm.channel import ChannelConfig
 from sparsecomm.configs import PRESETS, ILConfig, RLConfig, check_budget_fits
-from sparsecomm.experiment import Imitate, Train, train
+from sparsecomm.experiment import Imitate, Train, evaluate_runs, train
 from sparsecomm.jsonfile import read_json, write_json
 from sparsecomm.reproduce.plan import IL_LAMS, RL_LAMS
 from sparsecomm.reproduce.runs import expert_index
-from sparsecomm.runfolder import RESULTS, at_least
+from sparsecomm.runfolder import RESULTS, at_least, load_run
 
 PARTS = ("rl", "il_oracle", "il_rl", "rl_lams", "il_lams")
 """Every part, in the order they run (``il_rl`` needs ``rl``)."""
@@ -57,6 +63,10 @@ sender would say and what its recipient holds), a silent link held by its recipi
 prices and budgets as the paper's. The ``silent`` preset's links (docs/wire.md) with the paper's
 frame check; chosen on tuning seeds 1000-1001 (docs/paper-task.md, sessions 22 and 24)."""
 _FAST_RL = PRESETS["paper_fast"]["train"]
+GOALS, MAX_LENGTH_RATIO = (32.0, 16.0), 1.25
+"""Issue 32's targets: budget 32, then the stretch 16, with episodes at most 1.25x lambda 0's."""
+GREEDY = "eval_greedy.json"
+"""A part's evaluation with the most probable actions, beside its ``results.json``."""
 
 
 @dataclasses.dataclass
@@ -95,6 +105,11 @@ class PaperTask:
     near 45 bits on the verdict seeds)."""
     eval_episodes: int = 500
     """Final-evaluation episodes per run."""
+    greedy: bool = True
+    """Also evaluate every run on ``eval_episodes`` episodes taking its most probable actions
+    (``GREEDY`` in each part's folder; a row's ``greedy``, claims.json's ``targets_greedy``).
+    The verdicts stay on sampled actions. ours: on, since a team that acts on its most probable
+    actions is the other way to deploy it (docs/paper-task.md, session 31)."""
     chunk: int = 25
     """Updates per compiled call (the logging and wall-clock granularity)."""
     checkpoint_every: int = 2
@@ -149,6 +164,35 @@ def part_args(args: PaperTask, part: str) -> Train:
     raise ValueError(f"part must be one of {PARTS}, got {part!r}")
 
 
+def evaluate_greedy(folder: Path, episodes: int) -> Path:
+    """Evaluate every run of a part's folder with its most probable actions into ``GREEDY``."""
+    _, trainer, runs, actor = load_run(folder)
+    write_json(folder / GREEDY, evaluate_runs(trainer, runs, actor, episodes, greedy=True))
+    return folder / GREEDY
+
+
+def with_greedy(rows: list[dict], folder: Path, task: str, learner: str) -> list[dict]:
+    """``rows`` with a ``greedy`` field from ``folder``'s ``GREEDY`` evaluation (the metrics of
+    :data:`sparsecomm.wire_frontier.COLUMNS` as ``[mean, lo, hi]`` and ``per_seed``), matched
+    by group; unchanged when the folder has none."""
+    if not (folder / GREEDY).exists():
+        return rows
+    found = {
+        (r["budget"], r["lam"]): r for r in wire_frontier.read_rows(folder / GREEDY, task, learner)
+    }
+    names = (*wire_frontier.COLUMNS, "per_seed")
+    out = []
+    for row in rows:
+        g = found.get((row["budget"], row["lam"]))
+        out.append(row if g is None else row | {"greedy": {k: g[k] for k in names}})
+    return out
+
+
+def greedy_table(table: list[dict]) -> list[dict]:
+    """The rows that have greedy figures, with those figures in place of the sampled ones."""
+    return [r | r["greedy"] for r in table if "greedy" in r]
+
+
 def summarise(args: PaperTask) -> list[dict]:
     """``summary.json``, ``frontier.png`` and ``claims.json`` from the parts found in ``out``,
     and the rows an earlier ``summary.json`` in ``results`` holds of parts not found there (a
@@ -160,6 +204,7 @@ def summarise(args: PaperTask) -> list[dict]:
             continue
         learner = "rl" if part.startswith("rl") else "imitation"
         rows = wire_frontier.read_rows(path, "paper", learner)
+        rows = with_greedy(rows, args.out / part, "paper", learner)
         found[part] = [row | {"part": part, "series": SERIES.get(part)} for row in rows]
     if not found:
         return []
@@ -175,7 +220,10 @@ def summarise(args: PaperTask) -> list[dict]:
     verdicts = {
         "budget_matched": frontier.budget_claims(table),
         "lambdas": lambda_claims(table, earlier_claims.get("lambdas", [])),
-        "targets": frontier.targets(table, (32.0, 16.0), max_length_ratio=1.25),
+        "targets": frontier.targets(table, GOALS, max_length_ratio=MAX_LENGTH_RATIO),
+        "targets_greedy": frontier.targets(
+            greedy_table(table), GOALS, max_length_ratio=MAX_LENGTH_RATIO
+        ),
     }
     write_json(args.results / "claims.json", verdicts)
     return table
@@ -215,6 +263,8 @@ def paper_task(args: PaperTask) -> list[dict]:
         if part in args.parts:
             print(f"paper-task: part {part} -> {args.out / part}", flush=True)
             train(part_args(args, part))
+            if args.greedy:
+                evaluate_greedy(args.out / part, args.eval_episodes)
     table = summarise(args)
     for r in table:
         name = "λ 0" if r["budget"] is None else f"budget {r['budget']:g}"
@@ -226,6 +276,12 @@ def paper_task(args: PaperTask) -> list[dict]:
             f"[{r['success'][1]:.3f}, {r['success'][2]:.3f}], length {r['episode_length'][0]:.1f}, "
             f"payload {r['payload_bits'][0]:.1f}, wire {r['wire_bits'][0]:.1f}, "
             f"0.95 at {'-' if reach is None else f'{reach / 1e6:.1f}M env steps'}"
+            + (
+                f"; greedy: success {r['greedy']['success'][0]:.3f}, "
+                f"length {r['greedy']['episode_length'][0]:.1f}"
+                if "greedy" in r
+                else ""
+            )
         )
     if table:
         print(f"summary -> {args.results / 'summary.json'}, frontier.png, claims.json")

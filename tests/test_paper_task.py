@@ -45,6 +45,15 @@ def test_every_part_then_the_issues_rows_and_verdicts(tmp_path, fast_compile):
     assert {c["claim"] for c in verdicts["lambdas"]} == {4, 5}
     assert {c["claim"] for c in verdicts["budget_matched"]} <= {4, 5}
     assert (results / "frontier.png").stat().st_size > 0
+    # Every run evaluated again on its most probable actions: each row carries those figures.
+    greedy = json.loads((out / "rl" / "eval_greedy.json").read_text())
+    assert greedy["greedy"] is True and len(greedy["runs"]) == 4
+    (zero,) = [r for r in rows if r["part"] == "rl" and r["budget"] is None]
+    assert zero["greedy"]["per_seed"]["success"] == [
+        r["success_rate"] for r in greedy["runs"] if r["budget"] is None
+    ]
+    assert all("greedy" in r for r in rows)
+    assert {t["budget"] for t in verdicts["targets_greedy"]} <= {16.0, 32.0}
     # Finished parts are only re-evaluated: the same rows again.
     main(["paper-task", *TINY, "--parts", "rl", "--out", str(out), "--results", str(results)])
     again = json.loads((results / "summary.json").read_text())
@@ -104,3 +113,23 @@ def test_lambda_verdicts_come_from_the_rows_or_stay_as_they_were():
     legacy = [{k: v for k, v in r.items() if k != "per_seed"} for r in table]
     assert lambda_claims(legacy, earlier) == earlier
     assert lambda_claims(legacy, []) == []
+
+
+def test_greedy_figures_are_judged_apart_from_the_sampled_ones():
+    """``targets_greedy`` judges the rows' greedy figures: a budget row that misses on sampled
+    length (1.3x) but not on greedy length (1.2x) is met there and only there."""
+    from sparsecomm import frontier
+    from sparsecomm.paper_task import greedy_table
+
+    def row(budget, success, length, bits, g_length):
+        figures = dict(success=[success] * 3, episode_length=[length] * 3, payload_bits=[bits] * 3)
+        greedy = figures | {"episode_length": [g_length] * 3}
+        return {"learner": "rl", "budget": budget, "lam": 0.0, **figures, "greedy": greedy}
+
+    table = [row(None, 0.99, 60.0, 135.0, 50.0), row(32.0, 0.97, 78.0, 33.0, 60.0)]
+    table.append({k: v for k, v in row(16.0, 0.96, 80.0, 16.0, 55.0).items() if k != "greedy"})
+    sampled = frontier.targets(table, (32.0, 16.0), max_length_ratio=1.25)
+    assert [(t["budget"], t["met"]) for t in sampled] == [(32.0, False), (16.0, False)]
+    greedy = frontier.targets(greedy_table(table), (32.0, 16.0), max_length_ratio=1.25)
+    assert [(t["budget"], t["met"]) for t in greedy] == [(32.0, True)]  # 16 has no greedy row
+    assert greedy[0]["length_ratio"] == pytest.approx(1.2)
