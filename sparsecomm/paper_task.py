@@ -265,6 +265,8 @@ def paper_task(args: PaperTask) -> list[dict]:
             train(part_args(args, part))
             if args.greedy:
                 evaluate_greedy(args.out / part, args.eval_episodes)
+            else:  # an earlier one would describe parameters this part may have left
+                (args.out / part / GREEDY).unlink(missing_ok=True)
     table = summarise(args)
     for r in table:
         name = "λ 0" if r["budget"] is None else f"budget {r['budget']:g}"

@@ -70,6 +70,12 @@ def test_every_part_then_the_issues_rows_and_verdicts(tmp_path, fast_compile):
     kept = json.loads((results / "summary.json").read_text())
     assert sorted(kept, key=key) == sorted(rows, key=key)
     assert json.loads((results / "claims.json").read_text())["lambdas"] == verdicts["lambdas"]
+    # Without greedy, a part's earlier greedy evaluation goes and its rows carry none.
+    main(["paper-task", *TINY, "--parts", "rl", "--no-greedy", "--out", str(out),
+          "--results", str(results)])  # fmt: skip
+    assert not (out / "rl" / "eval_greedy.json").exists()
+    rl_rows = [r for r in json.loads((results / "summary.json").read_text()) if r["part"] == "rl"]
+    assert rl_rows and not any("greedy" in r for r in rl_rows)
 
 
 def test_bad_fields_are_refused_before_any_work(capsys):
