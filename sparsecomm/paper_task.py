@@ -51,7 +51,7 @@ from sparsecomm.experiment import Imitate, Train, evaluate_runs, train
 from sparsecomm.jsonfile import read_json, write_json
 from sparsecomm.reproduce.plan import IL_LAMS, RL_LAMS
 from sparsecomm.reproduce.runs import expert_index
-from sparsecomm.runfolder import RESULTS, at_least, load_run
+from sparsecomm.runfolder import RESULTS, at_least, load_run, read_config
 
 PARTS = ("rl", "il_oracle", "il_rl", "rl_lams", "il_lams")
 """Every part, in the order they run (``il_rl`` needs ``rl``)."""
@@ -175,11 +175,12 @@ def with_greedy(rows: list[dict], folder: Path, task: str, learner: str) -> list
     """``rows`` with a ``greedy`` field from ``folder``'s ``GREEDY`` evaluation (the metrics of
     :data:`sparsecomm.wire_frontier.COLUMNS` as ``[mean, lo, hi]`` and ``per_seed``), matched
     by group; unchanged when the folder has none."""
-    if not (folder / GREEDY).exists():
+    results = read_json(folder / GREEDY)
+    if results is None:
         return rows
-    found = {
-        (r["budget"], r["lam"]): r for r in wire_frontier.read_rows(folder / GREEDY, task, learner)
-    }
+    # wire_frontier.rows, not read_rows: the training curves were read for ``rows`` already
+    greedy = wire_frontier.rows(results, read_config(folder), task, learner)
+    found = {(r["budget"], r["lam"]): r for r in greedy}
     names = (*wire_frontier.COLUMNS, "per_seed")
     out = []
     for row in rows:
