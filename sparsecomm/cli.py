@@ -31,6 +31,7 @@ from sparsecomm.experiment import (
 )
 from sparsecomm.paper_task import PaperTask, paper_task
 from sparsecomm.reproduce import Reproduce, reproduce
+from sparsecomm.sharding import use_host_cores
 
 
 def _take_preset(argv: list[str]) -> tuple[str | None, list[str]]:
@@ -120,5 +121,13 @@ def main(argv: list[str] | None = None) -> None:
         raise _fail(e, e.exit_code) from None
 
 
-if __name__ == "__main__":
+def script() -> None:
+    """The ``sparsecomm`` command (and ``python -m sparsecomm.cli``): one CPU device per usable
+    core unless the user chose a count (:func:`sparsecomm.sharding.use_host_cores`), then
+    :func:`main`. In-process callers of :func:`main` keep JAX's devices as they are."""
+    use_host_cores()
     main()
+
+
+if __name__ == "__main__":
+    script()

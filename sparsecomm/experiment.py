@@ -45,6 +45,7 @@ from sparsecomm.sharding import (
     is_primary,
     make_mesh,
     place_runs,
+    sweep_devices,
     to_host,
     use_mesh,
 )
@@ -201,9 +202,11 @@ def evaluate_runs(
 ) -> dict:
     """Evaluate every run of a sweep over ``episodes`` fresh episodes, with bootstrap CIs.
 
-    The runs and episodes are split over ``devices`` (default: the local ones) as in training;
-    with several processes every process must call this (pass ``jax.devices()``).
+    The runs and episodes are split over ``devices`` (default: all of them), or over as many
+    as :func:`sparsecomm.sharding.sweep_devices` gives the runs, as in training; with several
+    processes every process must call this.
     """
+    devices = sweep_devices(len(runs), devices)
     config = trainer.config
     keys = jnp.stack([jax.random.key(config.seed + EVAL_SEED_OFFSET + r) for r in range(len(runs))])
     mesh = make_mesh(len(runs), episodes, devices)
@@ -253,7 +256,8 @@ def train(args: Train) -> dict:
     trainer = learner_for(cfg)
     budgets = args.budgets or (cfg.budget.bits,)
     spec = SweepSpec(args.seeds, args.lams, tuple(budgets))
-    check_fits(trainer, len(spec.runs()), args.eval_episodes, jax.devices())
+    devices = sweep_devices(len(spec.runs()))
+    check_fits(trainer, len(spec.runs()), args.eval_episodes, devices)
     start = None if args.init_from is None else load_params(args.init_from, args.init_index)
     state, runs, wall = run_sweep(
         trainer,
@@ -265,17 +269,17 @@ def train(args: Train) -> dict:
         tensorboard=args.tensorboard,
         progress=args.progress,
         kind=kind,
-        devices=jax.devices(),
+        devices=devices,
         start_params=start,
         start_from="" if args.init_from is None else f"{args.init_from}:{args.init_index}",
     )
     actor = state.params["actor"]
-    results = evaluate_runs(trainer, runs, actor, args.eval_episodes, devices=jax.devices())
+    results = evaluate_runs(trainer, runs, actor, args.eval_episodes, devices=devices)
     results.update(
         env_steps=cfg.num_updates * cfg.num_envs * cfg.env.max_steps,
         wall_clock_s=wall,
-        device=str(jax.devices()[0]),
-        devices=jax.device_count(),
+        device=str(devices[0]),
+        devices=len(devices),
         processes=jax.process_count(),
     )
     if args.gif:  # gathered on every process (a collective under jax.distributed)

@@ -9,6 +9,11 @@ episodes. XLA's SPMD partitioner then inserts the one collective this needs: the
 run's gradients over its episode shards. Nothing else is exchanged, so the results equal a
 single-device run up to float summation order.
 
+On one machine without an accelerator the ``sparsecomm`` command gives JAX one CPU device per
+usable core (:func:`use_host_cores`) and the commands hand a sweep only as many of them as split
+its runs evenly (:func:`sweep_devices`): runs on separate host devices train side by side, but
+one run's episodes split over them were slower than on one device (docs/benchmarks.md).
+
 Multi-host: start every process with ``jax.distributed.initialize()`` (the CLI's
 ``--distributed.*`` flags, :class:`Distributed`) and pass ``devices=jax.devices()`` (all hosts'
 devices) to :func:`sparsecomm.sweep.run_sweep` in every process. The mesh then spans hosts;
@@ -22,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import math
+import os
 from collections.abc import Sequence
 
 import jax
@@ -70,6 +76,52 @@ def is_primary() -> bool:
     """Whether this process writes the files (logs, checkpoints, results): process 0 under
     ``jax.distributed``, always with one process."""
     return jax.process_index() == 0
+
+
+def usable_cores() -> int:
+    """The CPU cores this process may run on (its affinity mask where the OS has one)."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1
+
+
+def use_host_cores() -> int | None:
+    """Give JAX one CPU device per usable core, unless the user chose a count.
+
+    The user's choice is ``JAX_NUM_CPU_DEVICES`` (``1``: everything on one device) or
+    ``--xla_force_host_platform_device_count`` in ``XLA_FLAGS``; either one leaves JAX as it
+    is. Must run before JAX computes anything (the ``sparsecomm`` command calls it first; a
+    library user calls it, or sets ``JAX_NUM_CPU_DEVICES``, before any JAX work).
+    Accelerators are unaffected: the CPU devices only serve where JAX has no other platform.
+    Two host devices on a 2-core VM trained a 10-run sweep 1.55x and a 20-run sweep 1.39x
+    faster per update (docs/benchmarks.md). The count changes the compiled programs, so a sweep
+    gives the same numbers again on the same device count, not across counts.
+
+    Returns:
+        The device count set, or None where the user's choice was kept.
+    """
+    if "JAX_NUM_CPU_DEVICES" in os.environ:
+        return None
+    if "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", ""):
+        return None
+    cores = usable_cores()
+    jax.config.update("jax_num_cpu_devices", cores)
+    return cores
+
+
+def sweep_devices(num_runs: int, devices: Sequence | None = None) -> list:
+    """The devices the commands give a sweep (or an evaluation) of ``num_runs`` runs.
+
+    All of ``devices`` (default: every process's) on accelerators and under
+    ``jax.distributed``; on one process's CPU devices, the first ``gcd(num_runs, n)``, which
+    split the runs evenly and leave every run's episodes whole: a machine's CPU devices share
+    its cores, and a 5-run sweep with its episodes split over two of them was ~14% slower per
+    update than on one device (docs/benchmarks.md).
+    """
+    devices = list(jax.devices() if devices is None else devices)
+    if jax.process_count() > 1 or devices[0].platform != "cpu":
+        return devices
+    return devices[: math.gcd(num_runs, len(devices))]
 
 
 def make_mesh(num_runs: int, num_envs: int, devices: Sequence | None = None) -> Mesh | None:

@@ -165,3 +165,69 @@ def test_distributed_flags_are_checked_before_joining():
         Distributed(True, "localhost:1", 2, 2).initialize()
     with pytest.raises(ValueError, match="distributed.num_processes must be >= 1, got 0"):
         Distributed(True, "localhost:1", 0, 0).initialize()
+
+
+def test_sweep_devices_split_runs_over_host_devices_but_never_a_runs_episodes():
+    from types import SimpleNamespace
+
+    from sparsecomm.sharding import make_mesh, sweep_devices
+
+    cpu = [SimpleNamespace(platform="cpu", id=i) for i in range(4)]
+    gpu = [SimpleNamespace(platform="gpu", id=i) for i in range(4)]
+    assert [d.id for d in sweep_devices(10, cpu)] == [0, 1]
+    assert [d.id for d in sweep_devices(20, cpu)] == [0, 1, 2, 3]
+    assert [d.id for d in sweep_devices(5, cpu)] == [0]  # not 4 devices on one run's episodes
+    assert sweep_devices(5, gpu) == gpu  # accelerators split episodes too
+    for runs in (1, 2, 3, 5, 6, 10, 20):  # so the mesh never has an episodes axis on CPU
+        mesh = make_mesh(runs, 256, jax.devices() * len(sweep_devices(runs, cpu)))
+        assert mesh is None or dict(mesh.shape)["episodes"] == 1, (runs, mesh)
+
+
+def _devices_in_a_fresh_process(env_extra: dict) -> tuple[str, int]:
+    """What ``use_host_cores`` returns and how many devices JAX then has, in a new process."""
+    env = {k: v for k, v in os.environ.items() if k not in ("JAX_NUM_CPU_DEVICES", "XLA_FLAGS")}
+    script = (
+        "import jax\nfrom sparsecomm.sharding import use_host_cores\n"
+        "n = use_host_cores()\nprint(n, len(jax.devices('cpu')))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", script],
+        env={**env, "JAX_PLATFORMS": "cpu", **env_extra},
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 0, out.stderr[-2000:]
+    chosen, count = out.stdout.split()
+    return chosen, int(count)
+
+
+def test_use_host_cores_gives_one_cpu_device_per_core_unless_the_user_chose():
+    from sparsecomm.sharding import usable_cores
+
+    cores = usable_cores()
+    assert _devices_in_a_fresh_process({}) == (str(cores), cores)
+    assert _devices_in_a_fresh_process({"JAX_NUM_CPU_DEVICES": "1"}) == ("None", 1)
+    flags = {"XLA_FLAGS": "--xla_force_host_platform_device_count=3"}
+    assert _devices_in_a_fresh_process(flags) == ("None", 3)
+
+
+def test_the_command_splits_a_sweeps_runs_over_the_cores(tmp_path):
+    """``sparsecomm train`` (here ``python -m sparsecomm.cli``) with 2 runs: on 2 or more
+    cores they train on 2 CPU devices (results.json's ``devices``); with
+    ``JAX_NUM_CPU_DEVICES=1`` on one."""
+    import math
+
+    from sparsecomm.sharding import usable_cores
+
+    args = ["train", "--config.env.max-steps", "8", "--config.num-envs", "4"]
+    args += ["--config.num-updates", "2", "--chunk", "2", "--seeds", "2", "--eval-episodes", "4"]
+    args += ["--no-gif", "--no-progress", "--no-tensorboard"]
+    env = {k: v for k, v in os.environ.items() if k not in ("JAX_NUM_CPU_DEVICES", "XLA_FLAGS")}
+    env.update(JAX_PLATFORMS="cpu", **FAST)
+    for extra, devices in (({}, math.gcd(2, usable_cores())), ({"JAX_NUM_CPU_DEVICES": "1"}, 1)):
+        out = tmp_path / str(devices)
+        cmd = [sys.executable, "-m", "sparsecomm.cli", *args, "--out", str(out)]
+        done = subprocess.run(cmd, env={**env, **extra}, capture_output=True, text=True)
+        assert done.returncode == 0, done.stderr[-3000:]
+        assert json.loads((out / "results.json").read_text())["devices"] == devices
