@@ -15,7 +15,6 @@ takes as many as divide its runs). Everything after ``--`` goes to ``sparsecomm 
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import json
 import os
@@ -25,6 +24,9 @@ import tempfile
 from pathlib import Path
 
 import tyro
+
+from sparsecomm.stats import read_csv
+from sparsecomm.sweep import WALL_CSV
 
 
 @dataclasses.dataclass
@@ -41,11 +43,11 @@ class Args:
 
 def seconds_per_update(run: Path) -> float:
     """Seconds per update after the first chunk, from ``run/wall.csv`` (update, seconds)."""
-    rows = [(int(u), float(s)) for u, s in list(csv.reader((run / "wall.csv").open()))[1:]]
-    (u0, s0), (u1, s1) = rows[0], rows[-1]
-    if u1 == u0:
+    wall = read_csv(run / WALL_CSV)
+    updates, seconds = wall["update"], wall["wall_s"]
+    if len(updates) < 2:
         raise SystemExit(f"--updates must span at least two chunks, got one in {run}")
-    return (s1 - s0) / (u1 - u0)
+    return float((seconds[-1] - seconds[0]) / (updates[-1] - updates[0]))
 
 
 def main(args: Args, train_args: list[str]) -> dict:
