@@ -1,4 +1,4 @@
-"""A bit budget that training meets: the penalty weight as a dual variable (issue 14).
+"""A bit budget that training meets: the penalty weight as a dual variable (docs/budget.md).
 
 A fixed bit-penalty weight lambda is right at one moment of training only: the ratio of the
 penalty's gradient to the task gradient's noise falls by orders of magnitude as a team learns
@@ -77,19 +77,19 @@ class BudgetConfig:
     dual_lr: float = 0.03
     """Step of ``log(weight)`` per update at a relative excess of 100% (> 0; the excess
     ``(bits - target) / target`` is clipped to [-1, 1]), so the weight can change 10x in 77
-    updates. ours (docs/budget.md, controller v2)."""
+    updates. ours (docs/budget.md, "The budget, RL")."""
     relief_lr: float | None = 0.3
     """Step of ``log(weight)`` per update (> 0) while the team sends less than its target or its
     success is below ``hold_success`` of its best (then the price falls at this rate whatever
     the bits): how fast the price gives way once bits fall off the cliff; 0.3 is 10x in 8
-    updates. ``None``: ``dual_lr`` (a symmetric step). ours: 0.3 (docs/budget.md, controller
-    v5)."""
+    updates. ``None``: ``dual_lr`` (a symmetric step). ours: 0.3 (docs/budget.md, "The budget,
+    RL")."""
     relief_floor: float | None = None
     """Bound of the relief, in (0, 1): while the team's success is down, the price falls no lower
     than this fraction of the last price at which its success held, and that bound itself falls
     at ``dual_lr`` per update while success stays down (so no link is held silent for good).
     ``None``: unbounded. ours: ``None`` for RL; imitation's default is set in ``ILConfig.budget``
-    (docs/budget.md, controller v6)."""
+    (docs/budget.md, the relief bounded)."""
     engage_success: float = 0.5
     """The target starts to fall when the moving average of the batch success rate (in [0, 1])
     first reaches this. ours."""
@@ -112,7 +112,7 @@ class BudgetConfig:
     """Step size of the decoupled penalty step (> 0, per unit of weight). ours: at the engaging
     weight 0.01 a head bias whose element is near silence (penalty gradient ~5 per unit of
     pre-activation) moves by ~1e-3 per update, the size of an Adam step at lr 1e-3, so the task
-    and the price start out even (docs/budget.md, controller v4)."""
+    and the price start out even (docs/budget.md, "The budget, RL")."""
 
     per_link: bool = False
     """Count ``bits`` (and the target, and the bits the controller measures) per link that

@@ -135,8 +135,8 @@ def load_meta(folder: str | os.PathLike) -> dict:
 
 ADDED_FIELDS = {("budget", "held"): ("budget", "log_weight")}
 """State fields added after checkpoints were first written: a checkpoint without one takes its
-value from the named field (``held``, the bit-budget controller's last good price, issue 14's
-controller v6, starts at the current price)."""
+value from the named field (``held``, the bit-budget controller's last good price, the
+bounded relief of docs/budget.md, starts at the current price)."""
 
 
 def _upgrade(state: dict) -> dict:

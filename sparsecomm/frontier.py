@@ -1,4 +1,4 @@
-"""The bit-budget frontier: success against bits, per budget and per lambda (issue 14).
+"""The bit-budget frontier: success against bits, per budget and per lambda (docs/budget.md).
 
 Reads the ``results.json`` of trained sweeps (``sparsecomm train|imitate --budgets ...``, or the
 ``rl_budget`` / ``il_budget`` parts of ``sparsecomm reproduce``) and writes
@@ -12,7 +12,7 @@ Reads the ``results.json`` of trained sweeps (``sparsecomm train|imitate --budge
 - ``frontier.png``: success against payload bits and against wire bits per step, budgets joined
   by a line, fixed-lambda points beside them;
 - the budget-matched verdicts of the paper's claims 4 and 5 (:func:`budget_claims`) and the
-  issue's targets (:func:`targets`), for the report.
+  budget targets (:func:`targets`), for the report.
 
 Command line (the numbers of docs/budget.md)::
 
@@ -40,8 +40,8 @@ COLUMNS = {
 }
 """Row field -> the evaluation metric it summarises."""
 TARGET_BUDGET, STRETCH_BUDGET = 16.0, 8.0
-"""Issue 14's target: budget 16 at >= ``TARGET_SUCCESS`` of lambda 0's success with final bits
-within ``TARGET_BITS_TOL`` of the budget; stretch: budget 8 at the same success."""
+"""The default target (docs/budget.md): budget 16 at >= ``TARGET_SUCCESS`` of lambda 0's success
+with final bits within ``TARGET_BITS_TOL`` of the budget; stretch: budget 8 at the same success."""
 TARGET_SUCCESS, TARGET_BITS_TOL = 0.95, 0.10
 
 
@@ -134,7 +134,7 @@ def targets(
     goals: tuple[float, ...] = (TARGET_BUDGET, STRETCH_BUDGET),
     max_length_ratio: float | None = None,
 ) -> list[dict]:
-    """Targets per series: each budget of ``goals`` (issue 14's: 16, then the stretch, 8) at >=
+    """Targets per series: each budget of ``goals`` (by default 16, then the stretch, 8) at >=
     ``TARGET_SUCCESS`` of lambda 0's success, with final payload bits within
     ``TARGET_BITS_TOL`` of the budget and, if ``max_length_ratio`` is given, episodes at most
     that many times lambda 0's length."""

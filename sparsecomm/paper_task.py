@@ -1,4 +1,4 @@
-"""The paper's task with bit budgets, RL and imitation, in one command (issue 32).
+"""The paper's task with bit budgets, RL and imitation, in one command (docs/paper-task.md).
 
     sparsecomm paper-task                      # every part, then the summary
     sparsecomm paper-task --parts rl           # one part (and the summary of what is there)
@@ -27,7 +27,7 @@ Then, from every part found in ``out``, it writes to ``results``:
   ...) with a ``series`` naming the expert of imitation of the RL team;
 - ``frontier.png``: success against payload and wire bits (:func:`sparsecomm.frontier.plot`);
 - ``claims.json``: claims 4 and 5 at budget-matched points and at the paper's lambdas, and the
-  issue's targets (budget 32, stretch 16, met within 10% at >= 95% of lambda 0's success with
+  task's targets (budget 32, stretch 16, met within 10% at >= 95% of lambda 0's success with
   episodes at most 1.25x its length: :func:`sparsecomm.frontier.targets`), judged on sampled
   actions (the convention of training, ``sparsecomm eval`` and deployed agents); with
   ``greedy``, ``targets_greedy`` judges the same targets on the teams' most probable actions.
@@ -61,10 +61,11 @@ NEWS = ChannelConfig(link_gate=True, on_silence="hold", news_margin=0.1)
 """The ``rl`` part's channel: a gate per link that news also opens (a gap of 0.1 between what a
 sender would say and what its recipient holds), a silent link held by its recipient; payload
 prices and budgets as the paper's. The ``silent`` preset's links (docs/wire.md) with the paper's
-frame check; chosen on tuning seeds 1000-1001 (docs/paper-task.md, sessions 22 and 24)."""
+frame check; chosen on tuning seeds 1000-1001 (docs/paper-task.md, links that fall silent, RL)."""
 _FAST_RL = PRESETS["paper_fast"]["train"]
 GOALS, MAX_LENGTH_RATIO = (32.0, 16.0), 1.25
-"""Issue 32's targets: budget 32, then the stretch 16, with episodes at most 1.25x lambda 0's."""
+"""The paper task's targets: budget 32, then the stretch 16, with episodes at most 1.25x lambda
+0's."""
 GREEDY = "eval_greedy.json"
 """A part's evaluation with the most probable actions, beside its ``results.json``."""
 
@@ -80,11 +81,12 @@ class PaperTask:
     parts: tuple[str, ...] = PARTS
     """Parts to run (any of ``PARTS``); the summary covers every part found in ``out``."""
     seeds: int = 5
-    """Seeds per group (seed s of every part uses ``key(config.seed + s)``). ours: 5, the issue's
-    least; the 95% CIs cover at most 94% at n = 5 (``stats.bootstrap_ci``)."""
+    """Seeds per group (seed s of every part uses ``key(config.seed + s)``). ours: 5, the least the
+    targets ask for (docs/paper-task.md); the 95% CIs cover at most 94% at n = 5
+    (``stats.bootstrap_ci``)."""
     budgets: tuple[float, ...] = (64.0, 32.0, 16.0)
     """Payload budgets (bits per step for the team) of ``rl``, ``il_oracle`` and ``il_rl``, each
-    beside a lambda-0 reference in the same program. ours: issue 32's."""
+    beside a lambda-0 reference in the same program. ours: the paper task's (docs/paper-task.md)."""
     rl: RLConfig = dataclasses.replace(
         _FAST_RL,
         channel=NEWS,
@@ -100,18 +102,18 @@ class PaperTask:
     1000-1003, the update count and the bonus from the verdicts on seeds 0-19
     (docs/paper-task.md)."""
     il: ILConfig = dataclasses.replace(PRESETS["paper"]["imitate"], channel=NEWS)
-    """The imitation learner: the ``paper`` preset (the settings of docs/budget.md's confirmed
-    controller v6 on this task) with the ``rl`` part's links that fall silent but speak on news
-    (:data:`NEWS`); its expert is set by the part. ours: tuned on seeds 1000-1001
-    (docs/paper-task.md, session 27: budgets 32 and 16 met there, where the plain channel stayed
-    near 45 bits on the verdict seeds)."""
+    """The imitation learner: the ``paper`` preset (the settings with which docs/budget.md
+    confirmed the bounded relief on this task) with the ``rl`` part's links that fall silent but
+    speak on news (:data:`NEWS`); its expert is set by the part. ours: tuned on seeds 1000-1001
+    (docs/paper-task.md, imitation of the oracle with links that fall silent: budgets 32 and 16
+    met there, where the plain channel stayed near 45 bits on the verdict seeds)."""
     eval_episodes: int = 500
     """Final-evaluation episodes per run."""
     greedy: bool = True
     """Also evaluate every run on ``eval_episodes`` episodes taking its most probable actions
     (``GREEDY`` in each part's folder; a row's ``greedy``, claims.json's ``targets_greedy``).
     The verdicts stay on sampled actions. ours: on, since a team that acts on its most probable
-    actions is the other way to deploy it (docs/paper-task.md, session 31)."""
+    actions is the other way to deploy it (docs/paper-task.md)."""
     chunk: int = 25
     """Updates per compiled call (the logging and wall-clock granularity)."""
     checkpoint_every: int = 2
@@ -199,7 +201,7 @@ def greedy_table(table: list[dict]) -> list[dict]:
 def summarise(args: PaperTask) -> list[dict]:
     """``summary.json``, ``frontier.png`` and ``claims.json`` from the parts found in ``out``,
     and the rows an earlier ``summary.json`` in ``results`` holds of parts not found there (a
-    part run in another session, whose run folder is gone, keeps its rows)."""
+    part run earlier, whose run folder is gone, keeps its rows)."""
     found = {}
     for part in PARTS:
         path = args.out / part / RESULTS
@@ -244,8 +246,8 @@ def lambda_claims(table: list[dict], earlier: list[dict]) -> list[dict]:
     """Claims 4 and 5 at the paper's lambdas: each ``*_lams`` part's runs with its series'
     lambda-0 runs (the ``rl`` / ``il_oracle`` row without a budget), read from the rows'
     per-seed figures (:func:`sparsecomm.wire_frontier.seed_runs`), so that a verdict survives
-    its run folders. A claim whose rows lack them (rows written before session 30) keeps its
-    ``earlier`` verdict."""
+    its run folders. A claim whose rows lack them (rows written before rows carried per-seed
+    figures) keeps its ``earlier`` verdict."""
     found = []
     for part, ref, name, claim in LAMBDA_CLAIMS:
         lams = [r for r in table if r["part"] == part]

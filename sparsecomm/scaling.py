@@ -1,6 +1,6 @@
 """Many agents: who talks to whom, and an inbox whose size does not grow with K (docs/scaling.md).
 
-Switches in :class:`sparsecomm.configs.AgentConfig` (defaults: today's all-to-all team with
+Switches in :class:`sparsecomm.configs.AgentConfig` (defaults: the all-to-all team with
 the concatenated inbox) and one in the task (``NavConfig.goal_view``: who sees whose goal):
 
 - **routing** (``neighbours``, ``radius``, ``hears``): at each step, from the positions the

@@ -1,4 +1,4 @@
-"""The frontier in packets (issue 31): success against the bits a network carries.
+"""The frontier in packets (docs/wire.md): success against the bits a network carries.
 
 Reads the evaluations of trained sweeps (a run folder's ``results.json``, or the ``eval.json``
 ``sparsecomm eval`` writes beside it) and writes to ``--out``
@@ -63,8 +63,9 @@ DATAGRAM_HEADER_BITS = 8 * (HEADER_BYTES + UDP_IP_BYTES)
 """376: the runtime's datagram header and MAC (19 bytes) and the IPv4 and UDP headers (28
 bytes)."""
 TARGET, WINDOW = 0.95, 10
-"""The success a team must pass, and the updates of the moving average: the issue's 0.95 and
-``benchmarks/learner_race.py``'s default window, so a row and a race count alike."""
+"""The success a team must pass, and the updates of the moving average: 0.95, the speed target's
+(docs/paper-task.md), and ``benchmarks/learner_race.py``'s default window, so a row and a race
+count alike."""
 
 
 def time_to_target(folder: str | Path) -> dict[tuple, tuple[float | None, float | None]]:

@@ -113,8 +113,8 @@ class Code:
     levels: int = 15
     """The paper's |M| (SPEC section 1 default 15): symbols are integers in [0, levels]."""
     remap: tuple[tuple[int, ...], ...] = ()
-    """``paper`` only, a learned code (issue 17): row k maps element k's symbol m to the paper
-    codeword ``remap[k][m]`` sent for it (a permutation of 0..levels keeping 0, the null), so
+    """``paper`` only, a learned code (docs/channel.md): row k maps element k's symbol m to the
+    paper codeword ``remap[k][m]`` sent for it (a permutation of 0..levels keeping 0, the null), so
     the symbols a team sends most get the shortest codewords (:func:`frequency_remap`). Empty:
     the paper's code. Payload bits are then ``L(remap[k][m])``."""
 

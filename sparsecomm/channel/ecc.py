@@ -1,4 +1,4 @@
-"""Error correction on the wire, as a trade of bits for robustness (issue 18, docs/noise.md).
+"""Error correction on the wire, as a trade of bits for robustness (docs/noise.md).
 
 ``ChannelConfig.ecc = "hamming74"`` protects every packet with a Hamming(7,4) code: each 4-bit
 nibble of the packet (CRC-32 included) becomes a 7-bit block that survives any single flipped

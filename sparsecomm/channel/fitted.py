@@ -1,4 +1,4 @@
-"""A code fitted to a team's symbols, agreed before deployment (issue 17, docs/channel.md).
+"""A code fitted to a team's symbols, agreed before deployment (docs/channel.md).
 
 The paper's code gives symbol ``m`` a codeword of ``floor(log2(m + 1))`` bits whatever the team
 sends. A trained team's symbols are far from uniform and change little from one step to the

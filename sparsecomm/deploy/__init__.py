@@ -1,5 +1,5 @@
 """Decentralised execution of a trained team: one OS process per agent, one for the world, the
-channel's real frames as UDP datagrams between them (issue 19, docs/deploy.md).
+channel's real frames as UDP datagrams between them (docs/deploy.md).
 
 * :mod:`~sparsecomm.deploy.wire`: the datagram around every frame (an 11-byte header and an
   8-byte HMAC-SHA-256 under the team's secret; a silent link sends none), the reports' fixed

@@ -37,8 +37,9 @@ class Deploy:
     and links.csv (bytes per link and step), the processes' logs. Default: ``<run>/deploy``
     (``runs/pretrained/deploy`` for the shipped team)."""
     loss: float = 0.0
-    """Probability that a datagram between agents is lost. ours: 0 (the issue's fault test:
-    0.2). A packet missing at the step's deadline is the null message (``on_drop``)."""
+    """Probability that a datagram between agents is lost. ours: 0 (the fault test of
+    tests/test_deploy.py: 0.2). A packet missing at the step's deadline is the null message
+    (``on_drop``)."""
     duplicate: float = 0.0
     """Probability that a datagram between agents arrives twice. ours: 0."""
     reorder: float = 0.0
@@ -49,11 +50,11 @@ class Deploy:
     deadline)."""
     garbage: float = 0.0
     """Probability that a garbage datagram (random bytes, or the datagram with bits flipped)
-    is sent beside a datagram between agents. ours: 0 (the issue's fault test: 0.01)."""
+    is sent beside a datagram between agents. ours: 0 (tests/test_deploy.py's fault test: 0.01)."""
     kills_per_episode: int = 0
     """Agent processes SIGKILLed per episode (a seeded agent at a seeded step in [1,
     ``kill_window``]); each is restarted and rejoins with its recurrent state reset. ours: 0
-    (the issue's fault test: 1)."""
+    (tests/test_deploy.py's fault test: 1)."""
     kill_window: int = 8
     """Kills happen at a step in [1, kill_window]. ours: 8 (well inside a trained team's
     ~20-step episodes, so the kill and the rejoin happen mid-episode)."""
@@ -61,8 +62,8 @@ class Deploy:
     """Seed of every fault draw (losses, duplicates, reordering, garbage, kills). ours: 0."""
     on_drop: str = "null"
     """What a receiver uses for a packet missing at the deadline: ``null`` (the null message,
-    the issue's rule) or ``last`` (the link's last good message, as ``NoiseConfig.on_drop``
-    for teams trained with it)."""
+    the paper's "nothing sent") or ``last`` (the link's last good message, as
+    ``NoiseConfig.on_drop`` for teams trained with it)."""
     message_deadline: float = 0.2
     """Seconds an agent waits, from its observation's arrival, for its peers' packets of the
     previous step (``Deadlines.message``). ours: 0.2."""

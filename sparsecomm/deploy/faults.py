@@ -48,8 +48,8 @@ class Faults:
     """What the network does to the agents' datagrams (module docstring). Default: nothing."""
 
     loss: float = 0.0
-    """Probability that a datagram is lost. Default 0 (ours: a clean network; the issue's test:
-    0.2)."""
+    """Probability that a datagram is lost. Default 0 (ours: a clean network; the fault test
+    of tests/test_deploy.py: 0.2)."""
     duplicate: float = 0.0
     """Probability that a datagram arrives twice. Default 0 (ours)."""
     reorder: float = 0.0
@@ -61,7 +61,7 @@ class Faults:
     time and some do not)."""
     garbage: float = 0.0
     """Probability that a garbage datagram is sent beside a datagram. Default 0 (ours; the
-    issue's test: 0.01)."""
+    fault test of tests/test_deploy.py: 0.01)."""
     seed: int = 0
     """Seed of the fault draws (with the episode, step, sender and recipient). Default 0."""
 

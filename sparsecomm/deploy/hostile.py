@@ -1,4 +1,4 @@
-"""A hostile peer: forged datagrams of every kind, aimed at a deployed team (issue 33).
+"""A hostile peer: forged datagrams of every kind, aimed at a deployed team (docs/deploy.md).
 
 The peer does not hold the team's secret. It knows everything else: the format
 (``sparsecomm.deploy.wire``), the team's size, the batch's episodes and steps, every process's

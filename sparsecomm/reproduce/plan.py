@@ -40,7 +40,7 @@ RL_LAMS = (0.01, 0.005, 0.001, 0.0)
 IL_LAMS = (0.001, 0.0007, 0.0004, 0.0001, 0.0)
 """Paper, section V and Table I: the imitation penalty weights (0 added as the reference)."""
 BUDGETS = (64.0, 32.0, 16.0, 8.0, 4.0)
-"""Issue 14: the bit budgets of the frontier (payload bits per step; lambda 0 sends ~160)."""
+"""The bit budgets of the frontier (payload bits per step; lambda 0 sends ~160; docs/budget.md)."""
 PARTS = (
     "rl",
     "imitation",
@@ -107,7 +107,7 @@ class Reproduce:
     """Imitation penalty weights. Paper: 0.001, 0.0007, 0.0004, 0.0001 (and 0 here)."""
     budgets: tuple[float, ...] = BUDGETS
     """Bit budgets of the ``rl_budget``, ``il_budget`` and ``il_budget_rl`` parts (payload bits
-    per step). ours, issue 14."""
+    per step). ours (docs/budget.md)."""
     rcl_bit_cost: float = 0.001
     """RCL's reward per payload bit sent, negated (paper reward units). The paper gives none.
     ours: 0.001, the price per bit that the surrogate penalty sets at the smallest non-zero RL
