@@ -53,7 +53,6 @@ from sparsecomm.envs.jaxmarl_reference import (  # noqa: E402
     MOVES,
     WORDS,
     ReferenceConfig,
-    SimpleReference,
 )
 from sparsecomm.reproduce.provenance import hardware  # noqa: E402
 from sparsecomm.rl import make_train  # noqa: E402
@@ -94,6 +93,7 @@ class Args:
 def config_of(a: Args, comm: str) -> RLConfig:
     mode = "discrete" if comm == "channel" else "off"
     return RLConfig(
+        env=ReferenceConfig(comm=comm),
         channel=ChannelConfig(mode=mode),
         num_envs=a.num_envs,
         num_updates=a.num_updates,
@@ -132,9 +132,9 @@ def evaluate(learner, env, cfg, params, key, episodes: int, comm: str) -> dict:
 def arm(a: Args, comm: str, budget: float | None):
     """One arm's environment, config, learner, and the training of every seed as one program
     with its arguments: ``program(*args)`` -> (state, curves), each leaf with a seeds axis."""
-    env = SimpleReference(ReferenceConfig(comm=comm))
     cfg = config_of(a, comm)
-    learner = make_train(cfg, env=env)
+    learner = make_train(cfg)
+    env = learner.env
     keys = jax.vmap(jax.random.PRNGKey)(jnp.arange(a.seeds) + a.seed)
     b = jnp.nan if budget is None else budget
     program = jax.jit(jax.vmap(learner.train, in_axes=(0, None, None)))

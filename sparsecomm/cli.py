@@ -1,7 +1,11 @@
 """Command line: ``sparsecomm train | imitate | eval | render | export | fit-code | reproduce |
 paper-task | deploy`` (tyro).
 
-Every flag is a documented config field: ``sparsecomm train --help`` lists them all. The work is
+Every flag is a documented config field: ``sparsecomm train --help`` lists them all. Two flags
+of ``train`` and ``imitate`` choose the defaults the others start from: ``--preset NAME``
+(``configs.PRESETS``) and ``--task NAME``, a registered task (``sparsecomm.envs.registry``)
+whose config's defaults replace ``--config.env``'s (``--task NAME --help`` lists its fields).
+``eval``, ``render``, ``export`` and ``deploy`` read the task from the run folder. The work is
 done in :mod:`sparsecomm.experiment`, :mod:`sparsecomm.codestats`, :mod:`sparsecomm.reproduce`,
 :mod:`sparsecomm.paper_task` and :mod:`sparsecomm.deploy`; this module only parses.
 """
@@ -17,6 +21,7 @@ from sparsecomm.codestats import FitCode, fit_code
 from sparsecomm.configs import PRESETS
 from sparsecomm.deploy.args import Deploy
 from sparsecomm.deploy.launcher import deploy
+from sparsecomm.envs import registry
 from sparsecomm.errors import RunError
 from sparsecomm.experiment import (
     Eval,
@@ -34,12 +39,12 @@ from sparsecomm.reproduce import Reproduce, reproduce
 from sparsecomm.sharding import use_host_cores
 
 
-def _take_preset(argv: list[str]) -> tuple[str | None, list[str]]:
-    """Remove ``--preset NAME`` (or ``--preset=NAME``) from ``argv``; returns the name."""
+def _take(flag: str, argv: list[str]) -> tuple[str | None, list[str]]:
+    """Remove ``flag NAME`` (or ``flag=NAME``) from ``argv``; returns the name."""
     for i, arg in enumerate(argv):
-        if arg == "--preset" and i + 1 < len(argv):
+        if arg == flag and i + 1 < len(argv):
             return argv[i + 1], argv[:i] + argv[i + 2 :]
-        if arg.startswith("--preset="):
+        if arg.startswith(flag + "="):
             return arg.split("=", 1)[1], argv[:i] + argv[i + 1 :]
     return None, argv
 
@@ -80,10 +85,18 @@ def parse(argv: list[str]):
     """The command's arguments, checked: every config's ``__post_init__`` has run."""
     import tyro
 
-    preset, argv = _take_preset(argv)
+    preset, argv = _take("--preset", argv)
+    task, argv = _take("--task", argv)
     _refuse_empty_paths(argv)
+    command = argv[0] if argv else None
+    if task is not None and command not in ("train", "imitate"):
+        raise ValueError(
+            "--task must follow 'sparsecomm train' or 'sparsecomm imitate' (the other commands "
+            f"read the task from the run folder), got {command!r}"
+        )
+    if task is not None:  # checked before any work, naming the registered tasks
+        task_config = registry.spec(task).config()
     if preset is not None:  # ``sparsecomm train|imitate --preset NAME [--config.* ...]``
-        command = argv[0] if argv else None
         if preset in PRESETS and command in COMMANDS and command not in PRESETS[preset]:
             serves = " and ".join(f"'sparsecomm {c}'" for c in PRESETS[preset])
             raise ValueError(f"--preset {preset} serves only {serves}, not {command!r}")
@@ -94,8 +107,16 @@ def parse(argv: list[str]):
             )
         cls = COMMANDS[command][0]
         out = Path("runs") / (preset if command == "train" else f"{command}_{preset}")
-        default = cls(config=PRESETS[preset][command], out=out)
-        prog = f"sparsecomm {command} --preset {preset}"
+        config = PRESETS[preset][command]
+        if task is not None:
+            config = dataclasses.replace(config, env=task_config)
+        default = cls(config=config, out=out)
+        prog = f"sparsecomm {command} --preset {preset}" + (f" --task {task}" if task else "")
+        return tyro.cli(cls, default=default, args=argv[1:], prog=prog)
+    if task is not None:  # ``sparsecomm train|imitate --task NAME [--config.* ...]``
+        cls = COMMANDS[command][0]
+        default = cls(config=dataclasses.replace(cls().config, env=task_config))
+        prog = f"sparsecomm {command} --task {task}"
         return tyro.cli(cls, default=default, args=argv[1:], prog=prog)
     commands = {name: cls for name, (cls, _) in COMMANDS.items()}
     return tyro.extras.subcommand_cli_from_dict(commands, args=argv)

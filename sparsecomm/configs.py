@@ -20,7 +20,9 @@ import optax
 
 from sparsecomm.budget import BudgetConfig, check_budget
 from sparsecomm.channel import GATES, ChannelConfig
+from sparsecomm.envs import registry
 from sparsecomm.envs.navigation import NavConfig
+from sparsecomm.envs.task import TaskConfig
 from sparsecomm.scaling import check_agent_fields, check_fits
 
 MAX_UPDATES = 10_000_000
@@ -135,8 +137,10 @@ class LearnerConfig:
     :class:`RLConfig` and :class:`ILConfig` add their own fields, and their own defaults where
     the learners differ."""
 
-    env: NavConfig = NavConfig()
-    """The navigation task."""
+    env: TaskConfig = NavConfig()
+    """The task: the config of a registered task (``sparsecomm.envs.registry``), whose class
+    names it (``task``); ``sparsecomm train --task NAME`` starts from that task's defaults.
+    paper: the hidden-goal navigation task (``NavConfig``)."""
     channel: ChannelConfig = ChannelConfig()
     """The channel."""
     agent: AgentConfig = AgentConfig()
@@ -170,9 +174,20 @@ class LearnerConfig:
     """Base PRNG seed, an integer in [0, :data:`MAX_SEED`] (the PRNG's 32 bits, its docstring
     says why); seed s of a sweep uses ``seed + s``. ours: 0."""
 
+    @property
+    def task(self) -> str:
+        """The registered name of the task ``env`` configures."""
+        return registry.task_of(self.env)
+
     def _checks(self) -> dict[str, tuple[bool, str]]:
         """Each field's rule, ``name -> (holds, the rule in words)``; a learner adds its own."""
+        task = registry.spec(self.task).env
+        routed = self.agent.neighbours is not None or self.agent.radius is not None
         return {
+            "agent.neighbours": (
+                not routed or hasattr(task, "positions"),
+                f"None (with radius None): task {self.task!r} has no positions to route by",
+            ),
             "num_envs": (self.num_envs >= 1, ">= 1"),
             "num_updates": (
                 _integer(self.num_updates) and 0 <= self.num_updates <= MAX_UPDATES,
@@ -208,6 +223,10 @@ class LearnerConfig:
 
     def __post_init__(self):
         _check_finite(self)
+        try:
+            self.task  # noqa: B018 (the env config must name a registered task)
+        except ValueError as e:
+            raise ValueError(f"{type(self).__name__}.{e}") from None
         for name, (ok, allowed) in self._checks().items():
             if not ok:
                 value = functools.reduce(getattr, name.split("."), self)
@@ -225,7 +244,7 @@ class RLConfig(LearnerConfig):
     """Actor-critic training through the channel (paper eq. 5, SPEC section 5)."""
 
     gamma: float = 0.95
-    """Discount, in [0, 1]. ours: 0.95 (docs/tuning.md, rounds 1-4; SPEC calibration: 0.99)."""
+    """Discount, in [0, 1]. ours: 0.95 (docs/tuning.md; SPEC calibration: 0.99)."""
     gae_lambda: float = 1.0
     """GAE lambda, in [0, 1]; 1.0 gives the paper's Monte-Carlo returns minus the critic
     (eq. 5). paper."""
@@ -234,7 +253,7 @@ class RLConfig(LearnerConfig):
     normalize_advantages: bool = True
     """Standardise each agent's advantages over the valid steps of the batch (zero mean, unit
     standard deviation) before the policy-gradient term. ours: True, not in the paper's eq. 5
-    (docs/tuning.md, round 5)."""
+    (docs/tuning.md, per-agent advantage standardisation)."""
     vf_coef: float = 0.5
     """Weight of the critic's squared-error loss (>= 0). ours."""
     penalty_delay: int = 0
@@ -298,8 +317,16 @@ class RLConfig(LearnerConfig):
 
 
 def to_dict(config) -> dict:
-    """A config as plain JSON-able data (nested dataclasses become dicts)."""
-    return dataclasses.asdict(config)
+    """A config as plain JSON-able data (nested dataclasses become dicts); a learner's config
+    also names its task (``"task"``, read back by :func:`from_dict`)."""
+    if dataclasses.is_dataclass(config) and not isinstance(config, type):
+        data = {f.name: to_dict(getattr(config, f.name)) for f in dataclasses.fields(config)}
+        return {"task": config.task, **data} if isinstance(config, LearnerConfig) else data
+    if isinstance(config, list | tuple):
+        return type(config)(to_dict(v) for v in config)
+    if isinstance(config, dict):
+        return {k: to_dict(v) for k, v in config.items()}
+    return config
 
 
 def _of_type(value, hint) -> bool:
@@ -330,6 +357,15 @@ def from_dict(cls, data: dict):
     if not isinstance(data, dict):
         raise ValueError(f"{cls.__name__} must be a JSON object of its fields, got {data!r}")
     hints = typing.get_type_hints(cls)
+    if isinstance(cls, type) and issubclass(cls, LearnerConfig):  # its task names env's class
+        data = dict(data)
+        task = data.pop("task", registry.DEFAULT)  # written before tasks had names
+        if not isinstance(task, str):
+            raise _bad(cls.__name__, "task", task, "a registered task's name (a string)")
+        try:
+            hints["env"] = registry.spec(task).config
+        except ValueError as e:
+            raise ValueError(f"{cls.__name__}.{e}") from None
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = set(data) - names
     if unknown:
@@ -361,7 +397,7 @@ class ILConfig(LearnerConfig):
     """The bit budget and its controller, as in RL (``sparsecomm.budget``). ours: the weight
     starts at 1e-3 when the controller engages (imitation's lambda has other units: its channel
     collapses between lambda 0.003 and 0.01, docs/imitation.md), and while success is down it
-    falls no lower than 0.1 of the last price that held it (docs/budget.md, controller v6)."""
+    falls no lower than 0.1 of the last price that held it (docs/budget.md, the relief bounded)."""
     num_envs: int = 64
     """Episodes of ``env.max_steps`` steps collected per update (>= 1). ours."""
     num_updates: int = 500
@@ -388,7 +424,14 @@ class ILConfig(LearnerConfig):
     def _checks(self) -> dict[str, tuple[bool, str]]:
         return {
             **super()._checks(),
-            "expert": (self.expert in EXPERTS, f"one of {EXPERTS}"),
+            "expert": (
+                self.expert in EXPERTS
+                and (
+                    self.expert != "oracle"
+                    or hasattr(registry.spec(self.task).env, "expert_actions")
+                ),
+                f"one of {EXPERTS}; 'oracle' needs a task with expert_actions (task {self.task!r})",
+            ),
             "expert_checkpoint": (
                 self.expert != "checkpoint" or bool(self.expert_checkpoint),
                 "a run folder when expert = checkpoint",
@@ -507,15 +550,15 @@ linearly from 1e-3 to 1e-4 over the first 1000 updates, 1500 updates (12.3M env 
 seed). Chosen on tuning seeds; on seeds 0-4 the mean success passed 0.95 after 8.8M env
 steps (13.4 minutes for the 5 seeds on 2 CPU cores), 3.1x fewer than the default's 256
 episodes at a constant rate (docs/paper-task.md). Imitation: the hard gate, 32 episodes per
-update, the budget's target halving every 40 updates, 1000 updates: the settings of
-docs/budget.md's confirmed controller v6 on this task (0.996 success at lambda 0).
+update, the budget's target halving every 40 updates, 1000 updates: the settings with which
+docs/budget.md confirmed the bounded relief on this task (0.996 success at lambda 0).
 
 ``paper_fast``: the paper's task, RL only, with 16 episodes per update, the learning rate
 falling linearly from 1e-3 to 1e-4 over the first 2000 updates and the hard gate, 1750 updates
 (7.2M env steps per seed). Chosen on tuning seeds 1000-1001; on seeds 0-4, side by side with
 the default learner in one run, the mean success passed 0.95 after 4.8M env steps in 435 s for
 the 5 seeds on 2 CPU cores, where the default had not passed it at 3x that wall-clock
-(docs/paper-task.md, session 25).
+(docs/paper-task.md, 16 episodes per update with the hard gate, side by side).
 
 ``silent`` (the README's first command): the same task with links that fall silent
 (:data:`SILENT_CHANNEL`: a gate per link, silent links hold their last message, a 16-bit

@@ -19,7 +19,7 @@ import numpy as np
 
 from sparsecomm.channel import NoiseConfig
 from sparsecomm.configs import MAX_SEED, ILConfig, RLConfig, check_budget_fits
-from sparsecomm.envs.render import render_frames, write_gif
+from sparsecomm.envs.render import write_gif
 from sparsecomm.errors import RunError
 from sparsecomm.jsonfile import write_json
 from sparsecomm.memory import check_fits
@@ -232,16 +232,19 @@ def evaluate_runs(
 
 
 def render_run(trainer, actor_params, seed: int, out: Path, fps: int = 12) -> Path:
-
+    """A GIF of one episode of the team (seed ``seed``) drawn by the task's ``render``; a
+    ``RunError`` if the task draws nothing."""
+    if not hasattr(trainer.env, "render"):
+        raise RunError(f"task {trainer.config.task!r} has no render (envs/task.py)")
     traj = jax.jit(
         lambda p, k: rollout(
             trainer.team, trainer.env, trainer.config.channel, p, k, 1, keep_states=True
         )
     )(actor_params, jax.random.key(seed))
     length = int(np.asarray(traj.valid).sum())
-    states = jax.tree.map(lambda x: np.asarray(x)[:length, 0], traj.env_states)
+    states = jax.tree.map(lambda x: np.asarray(x)[:length, 0], traj.aside.env_states)
     link_bits = np.asarray(traj.link_bits)[:length, 0]
-    frames = render_frames(states, trainer.env.config, link_bits=link_bits)
+    frames = trainer.env.render(states, link_bits)
     write_gif(out, frames, fps=fps)
     return out
 
@@ -276,7 +279,7 @@ def train(args: Train) -> dict:
     actor = state.params["actor"]
     results = evaluate_runs(trainer, runs, actor, args.eval_episodes, devices=devices)
     results.update(
-        env_steps=cfg.num_updates * cfg.num_envs * cfg.env.max_steps,
+        env_steps=cfg.num_updates * cfg.num_envs * trainer.env.max_steps,
         wall_clock_s=wall,
         device=str(devices[0]),
         devices=len(devices),
@@ -304,8 +307,10 @@ def train(args: Train) -> dict:
             metrics = ("imitation_loss", *metrics)
         curves = plot_curves(args.out / "metrics.csv", args.out / "curves.png", metrics)
         print(f"curves  -> {curves}")
-    if args.gif:
+    if args.gif and hasattr(trainer.env, "render"):
         print(f"gif     -> {render_run(trainer, actor0, 0, args.out / 'team.gif')}")
+    elif args.gif:
+        print(f"gif     -> none: task {cfg.task!r} has no render")
     return results
 
 

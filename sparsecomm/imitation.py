@@ -23,21 +23,19 @@ import optax
 from sparsecomm import channel
 from sparsecomm.agents import Team
 from sparsecomm.configs import ILConfig
-from sparsecomm.envs.navigation import NavigationEnv
-from sparsecomm.envs.oracle import oracle_actions
+from sparsecomm.envs.task import Task
 from sparsecomm.learner import Learner, LossAux, make_learner, make_team, masked_mean
 from sparsecomm.rollout import Expert, episode_metrics, exchange, keeps_delivered, rollout
 
 
-def oracle_expert(env: NavigationEnv) -> Expert:
-    """The centralised scripted controller as an :class:`Expert` (stateless, sends nothing)."""
-    cfg = env.config
+def oracle_expert(env: Task) -> Expert:
+    """The task's centralised scripted expert (``env.expert_actions``, e.g. navigation's
+    oracle) as an :class:`Expert` (stateless, sends nothing)."""
+    if not hasattr(env, "expert_actions"):
+        raise ValueError(f"ILConfig.expert 'oracle' needs a task with expert_actions, not {env!r}")
     return Expert(
         init=lambda batch: jnp.zeros(()),
-        step=lambda carry, key, state, obs: (
-            carry,
-            jax.vmap(oracle_actions, (0, None))(state, cfg),
-        ),
+        step=lambda carry, key, state, obs: (carry, jax.vmap(env.expert_actions)(state)),
     )
 
 
@@ -151,7 +149,7 @@ def make_imitate(config: ILConfig, expert: Expert | None = None) -> Learner:
             beta=beta,
             expert_agreement=mean(agree.astype(jnp.float32)),
         )
-        return loss, LossAux(metrics, traj.hidden, traj.valid)
+        return loss, LossAux(metrics, traj.aside.hidden, traj.valid)
 
     def own_success(metrics, update):
         """The team's own success counts only once beta has reached beta_end (the learners drive

@@ -86,7 +86,7 @@ def check_fits(learner, num_runs: int, eval_episodes: int, devices=None) -> dict
         raise TooLargeError(
             f"this sweep needs about {need['total'] / GIB:.1f} GiB ({num_runs} run(s) x "
             f"{need['per_run'] / GIB:.2f} GiB: state, and {cfg.num_envs} episodes x "
-            f"{cfg.env.max_steps} steps kept for the backward pass), more than the "
+            f"{learner.env.max_steps} steps kept for the backward pass), more than the "
             f"{have / GIB:.1f} GiB of {where}; lower --seeds, --lams or --budgets (runs), "
             "--config.num-envs, --config.env.max-steps, --config.agent.hidden/--config.agent.gru "
             "or --config.channel.num-elements, or set --config.remat"

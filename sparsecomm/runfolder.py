@@ -30,7 +30,7 @@ from flax import serialization
 
 from sparsecomm import checkpoint
 from sparsecomm.configs import ILConfig, RLConfig, from_dict, to_dict
-from sparsecomm.envs.navigation import NavigationEnv
+from sparsecomm.envs.task import Task
 from sparsecomm.errors import CheckpointError, RunError
 from sparsecomm.imitation import make_imitate, oracle_expert, team_expert
 from sparsecomm.jsonfile import write_json
@@ -157,7 +157,7 @@ def load_expert(config: ILConfig) -> Expert:
     """The expert ``config`` names: the oracle, or run ``expert_index`` of the RL run folder (or
     exported team) ``expert_checkpoint``, acting greedily over its own channel."""
     if config.expert == "oracle":
-        return oracle_expert(NavigationEnv(config.env))
+        return oracle_expert(make_team(config)[0])
     rl_config, trainer, runs, actor = load_run(Path(config.expert_checkpoint))
     if rl_config.env != config.env:
         raise RunError(
@@ -196,6 +196,15 @@ def _team_meta(folder: Path) -> dict:
     if not is_team(folder):
         raise ValueError(f"team must be an exported team folder ({TEAM}), got {folder}")
     return json.loads((folder / TEAM).read_text())
+
+
+def _team_config(folder: Path) -> RLConfig | ILConfig:
+    """The config an exported team's metadata records; one it cannot be read back as (a task
+    not registered, a field refused) is a ``CheckpointError`` naming the file."""
+    try:
+        return _config(_team_meta(folder), folder / TEAM)
+    except (ValueError, TypeError) as e:
+        raise CheckpointError(f"{folder / TEAM} does not hold a valid team: {e}") from None
 
 
 def read_meta(folder: str | Path) -> tuple[RLConfig | ILConfig, SweepSpec]:
@@ -240,7 +249,7 @@ def read_config(folder: str | Path) -> RLConfig | ILConfig:
     if not folder.is_dir():
         raise RunError(f"no run folder at {folder}")
     if is_team(folder):
-        return _config(_team_meta(folder), folder / TEAM)
+        return _team_config(folder)
     return read_meta(folder)[0]
 
 
@@ -249,7 +258,7 @@ class ExportedTeam(NamedTuple):
     needs, in a second."""
 
     config: RLConfig | ILConfig
-    env: NavigationEnv
+    env: Task
     team: object  # sparsecomm.agents.Team
     actor: dict | None  # the actor's parameters (numpy), no run axis; None: not read
     run: Run
@@ -271,7 +280,7 @@ def read_team(folder: str | Path, weights: bool = True) -> ExportedTeam:
     """The exported team in ``folder``. ``weights=False``: its config only (``actor`` None)."""
     folder = Path(folder)
     meta = _team_meta(folder)
-    config = _config(meta, folder / TEAM)
+    config = _team_config(folder)
     env, team = make_team(config)
     actor = None
     if weights:
@@ -283,7 +292,7 @@ class Actors(NamedTuple):
     """The teams of a folder, ready to play: what :func:`load_actors` returns."""
 
     config: RLConfig | ILConfig
-    env: NavigationEnv
+    env: Task
     team: object  # sparsecomm.agents.Team
     runs: list[Run]
     actor: dict  # the actors' parameters, leading run axis

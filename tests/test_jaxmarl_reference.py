@@ -80,10 +80,15 @@ def test_bad_config_names_the_field():
 
 @pytest.mark.parametrize("comm", ["channel", "env"])
 def test_sparsecomms_learner_trains_on_it(comm):
-    env = SimpleReference(ReferenceConfig(comm=comm))
     mode = "discrete" if comm == "channel" else "off"
-    cfg = RLConfig(channel=ChannelConfig(mode=mode), num_envs=8, num_updates=2, reward_scale=1.0)
-    learner = make_train(cfg, env=env)
+    cfg = RLConfig(
+        env=ReferenceConfig(comm=comm),
+        channel=ChannelConfig(mode=mode),
+        num_envs=8,
+        num_updates=2,
+        reward_scale=1.0,
+    )
+    learner = make_train(cfg)
     state, metrics = jax.jit(learner.train)(jax.random.PRNGKey(3), 0.0)
     assert metrics["episode_length"].tolist() == [25.0, 25.0]
     assert np.isfinite(np.asarray(metrics["loss"])).all()

@@ -34,7 +34,7 @@ import jax.numpy as jnp
 
 from sparsecomm import channel, rollout, runfolder
 from sparsecomm.channel import ChannelConfig
-from sparsecomm.envs.navigation import NavigationEnv
+from sparsecomm.envs.task import Task
 
 MAX_AGENTS = 255
 """Agents are numbered by one byte in the datagram header."""
@@ -241,7 +241,7 @@ def frame_slot(sender: int, recipient: int) -> int:
 
 
 @functools.lru_cache(maxsize=4)
-def world_fns(env: NavigationEnv):
+def world_fns(env: Task):
     """Jitted ``reset(key)`` and ``step(key, state, actions)`` of the task (unbatched)."""
     return jax.jit(env.reset), jax.jit(env.step)
 

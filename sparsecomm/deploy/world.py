@@ -164,7 +164,7 @@ class World:
         self.args, self.k = args, k
         self.agents = [wire.parse_address(a) for a in args.agents]
         self.monitor = wire.parse_address(args.monitor) if args.monitor else None
-        self.steps = self.env.config.max_steps
+        self.steps = self.env.max_steps
         key = core.batch_key(args.seed)
         self.reset_keys, self.env_keys = core.world_draws(key, args.episodes, self.steps)
         self.reset, self.step = core.world_fns(self.env)

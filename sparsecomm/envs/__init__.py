@@ -1,4 +1,6 @@
-"""The hidden-goal cooperative navigation task (paper section V.A, SPEC section 4)."""
+"""The tasks: the interface (``task.py``), the registry by name (``registry.py``), the paper's
+hidden-goal cooperative navigation (paper section V.A, SPEC section 4) and JaxMARL's
+``simple_reference``."""
 
 from sparsecomm.envs.navigation import NUM_ACTIONS, NavConfig, NavigationEnv, NavState
 from sparsecomm.envs.oracle import (
@@ -7,6 +9,8 @@ from sparsecomm.envs.oracle import (
     oracle_actions,
     run_policy_episodes,
 )
+from sparsecomm.envs.registry import make, names, register
+from sparsecomm.envs.task import Task, TaskConfig, check_task
 
 __all__ = [
     "NUM_ACTIONS",
@@ -15,6 +19,12 @@ __all__ = [
     "NavState",
     "NavigationEnv",
     "NavigationParallelEnv",
+    "Task",
+    "TaskConfig",
+    "check_task",
+    "make",
+    "names",
+    "register",
     "center_actions",
     "oracle_actions",
     "record_episode",

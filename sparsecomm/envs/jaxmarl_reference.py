@@ -1,4 +1,4 @@
-"""JaxMARL's MPE ``simple_reference`` as a sparsecomm task (issue 20: a foreign environment).
+"""JaxMARL's MPE ``simple_reference`` as a sparsecomm task (a foreign environment).
 
 Two agents and three coloured landmarks. Each agent sees the colour of the landmark the *other*
 agent must reach, and is rewarded by how close the other gets there (JaxMARL:
@@ -7,9 +7,10 @@ so each must tell the other where to go. In JaxMARL an action is one of 50: a mo
 word (10, the environment's own communication: the other agent reads the word, one-hot, in its
 next observation).
 
-This adapter gives the environment the interface of :class:`sparsecomm.envs.NavigationEnv` that
-the one rollout (:mod:`sparsecomm.rollout`) and the learners need (``reset``, ``step`` on arrays,
-``global_state``, sizes), with a choice of how the agents talk (``ReferenceConfig.comm``):
+This adapter gives the environment the task interface (:mod:`sparsecomm.envs.task`: ``reset``,
+``step`` on arrays, ``global_state``, sizes) and registers it as ``simple_reference``
+(:mod:`sparsecomm.envs.registry`), with a choice of how the agents talk
+(``ReferenceConfig.comm``):
 
 - ``channel``: 5 move actions; the environment's word slot is cut from the observations and the
   agents talk through sparsecomm's channel (learned messages, real bits, a bit budget);
@@ -18,7 +19,8 @@ the one rollout (:mod:`sparsecomm.rollout`) and the learners need (``reset``, ``
 - ``none``: 5 move actions and no words (a lower bound); with ``channel.mode = "off"``.
 
 ``jaxmarl`` is an optional dependency (``pip install "sparsecomm[jaxmarl]"``), imported when the
-task is built. Train with ``sparsecomm.rl.make_train(config, env=SimpleReference(...))``;
+task is built. Train with ``sparsecomm train --task simple_reference`` (or a config whose ``env``
+is a :class:`ReferenceConfig`);
 ``benchmarks/jaxmarl_reference.py`` runs the comparison of docs/plugin.md.
 """
 
@@ -30,6 +32,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
+from sparsecomm.envs.task import TaskConfig
+
 COMMS = ("channel", "env", "none")
 MOVES = 5
 """JaxMARL's discrete moves: none, -x, +x, -y, +y (``action mod 5``)."""
@@ -38,7 +42,7 @@ WORDS = 10
 
 
 @dataclasses.dataclass(frozen=True)
-class ReferenceConfig:
+class ReferenceConfig(TaskConfig):
     """The task. Defaults are JaxMARL's ``MPE_simple_reference_v3`` unless a field says ours."""
 
     comm: str = "channel"
@@ -48,6 +52,11 @@ class ReferenceConfig:
     """Steps per episode. JaxMARL's MPE default (``MAX_STEPS``)."""
     local_ratio: float = 0.5
     """Weight of an agent's own term in its reward (the rest is the team mean). JaxMARL."""
+
+    @property
+    def num_agents(self) -> int:
+        """Two agents (JaxMARL's)."""
+        return 2
 
     def __post_init__(self):
         if self.comm not in COMMS:
@@ -98,6 +107,10 @@ class SimpleReference:
         return 2
 
     @property
+    def max_steps(self) -> int:
+        return self.config.max_steps
+
+    @property
     def num_actions(self) -> int:
         return MOVES * WORDS if self.config.comm == "env" else MOVES
 
@@ -129,6 +142,10 @@ class SimpleReference:
         return jnp.concatenate(
             [self._obs(state.mpe).reshape(-1), state.mpe.p_pos[:2].reshape(-1), goals, time]
         ).astype(jnp.float32)
+
+    def positions(self, state: ReferenceState) -> jax.Array:
+        """(2, 2) the agents' positions."""
+        return state.mpe.p_pos[:2]
 
     def goal_distances(self, state: ReferenceState) -> jax.Array:
         """(2,) each agent's distance to its goal landmark."""

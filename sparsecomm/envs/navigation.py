@@ -62,6 +62,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from sparsecomm.envs.task import TaskConfig
+
 GOAL_VIEWS = ("others", "ring")
 """The rules of who observes whose goal (``NavConfig.goal_view``)."""
 
@@ -78,7 +80,7 @@ ACTION_DIRECTIONS = np.array(
 
 
 @dataclasses.dataclass(frozen=True)
-class NavConfig:
+class NavConfig(TaskConfig):
     """Configuration of the hidden-goal navigation task (hashable: usable as a static jit arg)."""
 
     num_agents: int = 3
@@ -257,6 +259,10 @@ class NavigationEnv:
         return NUM_ACTIONS
 
     @property
+    def max_steps(self) -> int:
+        return self.config.max_steps
+
+    @property
     def obs_dim(self) -> int:
         return 4 + 2 * self._seen.shape[1]
 
@@ -283,6 +289,10 @@ class NavigationEnv:
             parked=jnp.zeros((k,), bool),
         )
         return self.get_obs(state), state
+
+    def positions(self, state: NavState) -> jax.Array:
+        """(K, 2) the agents' positions (for links that follow them, ``sparsecomm.scaling``)."""
+        return state.pos
 
     def get_obs(self, state: NavState) -> jax.Array:
         """(K, obs_dim) float32: own position, own velocity, the goals ``goal_view`` shows."""
