@@ -42,8 +42,8 @@ def when_links_speak(folder: str, episodes: int, seed: int) -> list[dict]:
     for r in range(len(actors.runs)):
         params = jax.tree.map(lambda x, r=r: x[r], actors.actor)
         traj = play(params, jax.random.key(seed + r))
-        speak = (np.asarray(traj.symbols)[..., :c] != 0).any(-1)  # (T, B, K, K-1)
-        goals = np.asarray(traj.env_states.goals)[:, :, recipients]  # (T, B, K, K-1, 2)
+        speak = (np.asarray(traj.aside.symbols)[..., :c] != 0).any(-1)  # (T, B, K, K-1)
+        goals = np.asarray(traj.aside.env_states.goals)[:, :, recipients]  # (T, B, K, K-1, 2)
         valid = np.broadcast_to(np.asarray(traj.valid)[..., None, None], speak.shape)
         jump = np.zeros(speak.shape, bool)
         jump[1:] = np.abs(goals[1:] - goals[:-1]).sum(-1) > 0

@@ -1,4 +1,4 @@
-"""What a trained team's messages carry, and a code fitted to them (issue 17, docs/channel.md).
+"""What a trained team's messages carry, and a code fitted to them (docs/channel.md).
 
 :func:`link_symbols` plays a team's episodes and returns every link's symbol sequence;
 :func:`entropies` estimates their entropy (marginal and given the previous step's message, per
@@ -83,7 +83,7 @@ def link_symbols(trainer, channel_cfg, params, key, episodes: int, batch: int = 
     for i, start in enumerate(range(0, episodes, batch)):
         n = min(batch, episodes - start)
         traj = play(params, jax.random.fold_in(key, i), n)
-        m = np.asarray(traj.symbols, np.int64)  # (T, B, K, K-1, C)
+        m = np.asarray(traj.aside.symbols, np.int64)  # (T, B, K, K-1, C)
         t, b, k, r, c = m.shape
         links.append(m.transpose(1, 2, 3, 0, 4).reshape(b * k * r, t, c))
         valid.append(np.repeat(np.asarray(traj.valid).T, k * r, axis=0))
@@ -126,7 +126,7 @@ def entropies(links: np.ndarray, valid: np.ndarray) -> dict[str, float]:
 
 
 def _old_wire(m: np.ndarray, levels: int) -> tuple[np.ndarray, np.ndarray]:
-    """The wire format before issue 17 (docs/channel.md): every element framed as Elias-gamma
+    """The former wire format (docs/channel.md): every element framed as Elias-gamma
     of m + 1 (2 L(m) + 1 bits, a null 1 bit), as logged (no padding, no CRC) and as the
     packet (padded to a byte, CRC-16)."""
     lengths = 2 * np.floor(np.log2(m + 1)).astype(np.int64) + 1

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
@@ -30,7 +30,8 @@ from flax import struct
 from sparsecomm import budget as bit_budget
 from sparsecomm.agents import Team
 from sparsecomm.configs import LearnerConfig
-from sparsecomm.envs.navigation import NavigationEnv
+from sparsecomm.envs import registry
+from sparsecomm.envs.task import Task
 from sparsecomm.rollout import Expert, episode_metrics, rollout
 from sparsecomm.scaling import check_fits
 
@@ -57,6 +58,25 @@ class LossAux(NamedTuple):
     """(T, B) bool: the step belongs to the episode (``Trajectory.valid``)."""
 
 
+class Loss(Protocol):
+    """A learner's loss on a batch it plays itself: ``loss(params, key, price, update) ->
+    (loss, LossAux)`` (``price``: the bit-penalty weight of this update, in lambda's units;
+    ``update``: the 0-based update counter)."""
+
+    def __call__(
+        self, params: dict, key: jax.Array, price: jax.Array, update: jax.Array
+    ) -> tuple[jax.Array, LossAux]: ...
+
+
+class ReplayLoss(Protocol):
+    """A learner's loss on the (b,) episodes ``episodes`` of a batch collected once
+    (:class:`Replay`): ``loss(params, batch, episodes, price, update) -> (loss, LossAux)``."""
+
+    def __call__(
+        self, params: dict, batch, episodes: jax.Array, price: jax.Array, update: jax.Array
+    ) -> tuple[jax.Array, LossAux]: ...
+
+
 @dataclasses.dataclass(frozen=True)
 class Replay:
     """How a learner that plays each batch once and then takes several gradient steps on it
@@ -80,7 +100,7 @@ class Learner:
     """The pure functions of one configuration (see the module docstring)."""
 
     config: LearnerConfig
-    env: NavigationEnv
+    env: Task
     team: Team
     tx: optax.GradientTransformation
     init: Callable
@@ -88,22 +108,18 @@ class Learner:
     update_chunk: Callable
     train: Callable
     evaluate: Callable
-    loss: Callable
-    """``loss(params, key, price, update) -> (loss, LossAux)``: the learner's own loss."""
+    loss: Loss
+    """The learner's loss on the batch of a key (a replaying learner's: the loss of the first
+    minibatch of that batch, the shape of every step it takes; ``memory.estimate`` sizes an
+    update by it)."""
     expert: Expert | None = None
 
 
-def make_team(config: LearnerConfig, env=None) -> tuple[NavigationEnv, Team]:
-    """The task and the team of a learner's config (``env``, ``agent``, ``channel``).
-
-    ``env``: another task to use instead of ``NavigationEnv(config.env)``, with its interface
-    (``reset``, ``step``, ``global_state``, ``num_agents``, ``obs_dim``, ``num_actions``,
-    ``state_dim``, ``config.max_steps``; e.g. ``sparsecomm.envs.jaxmarl_reference``);
-    ``config.env`` is then unused."""
-    if env is None:
-        env = NavigationEnv(config.env)
-    else:
-        check_fits(config.agent, env.num_agents)
+def make_team(config: LearnerConfig) -> tuple[Task, Team]:
+    """The task and the team of a learner's config (``env``, ``agent``, ``channel``): the task
+    is the registered one ``config.env`` configures (``sparsecomm.envs.registry.make``)."""
+    env = registry.make(config.env)
+    check_fits(config.agent, env.num_agents)
     team = Team(
         config.agent,
         env.num_agents,
@@ -119,22 +135,20 @@ def make_team(config: LearnerConfig, env=None) -> tuple[NavigationEnv, Team]:
 
 def make_learner(
     config: LearnerConfig,
-    loss_fn: Callable,
+    loss_fn: Loss | ReplayLoss,
     tx: optax.GradientTransformation,
     *,
-    env: NavigationEnv,
+    env: Task,
     team: Team,
     success_of: Callable | None = None,
     expert: Expert | None = None,
     replay: Replay | None = None,
 ) -> Learner:
     """Wrap a loss into a learner. ``success_of(metrics, update)`` is the success rate the budget
-    controller sees (default: the batch's ``success_rate``). ``replay``: the loss is taken on
-    minibatches of a batch played once (:class:`Replay`); by default it plays its own batch."""
-    if success_of is None:
-
-        def success_of(metrics, update):
-            return metrics["success_rate"]
+    controller sees (default: the batch's ``success_rate``). ``replay``: the loss is a
+    :class:`ReplayLoss`, taken on minibatches of a batch played once (:class:`Replay`); by
+    default it is a :class:`Loss` that plays its own batch."""
+    success_of = success_of or _batch_success
 
     def init(key: jax.Array, lam, budget=jnp.nan) -> LearnerState:
         """A run's first state; ``budget`` (payload bits per step, NaN: none) overrides lambda."""
@@ -151,29 +165,6 @@ def make_learner(
         norms = {f"{part}_grad_norm": optax.tree.norm(g) for part, g in grads.items()}
         return optax.apply_updates(params, updates), opt_state, aux, norms
 
-    def replayed_steps(state: LearnerState, key, price):
-        """Play the batch once, then ``epochs`` passes of ``minibatches`` steps over it."""
-        k_roll, k_order = jax.random.split(key)
-        batch, aux = replay.collect(state.params, k_roll, state.update)
-        n = config.num_envs
-        orders = jax.vmap(lambda k: jax.random.permutation(k, n))(
-            jax.random.split(k_order, replay.epochs)
-        )
-        minibatches = orders.reshape(replay.epochs * replay.minibatches, n // replay.minibatches)
-
-        def step(carry, episodes):
-            params, opt_state, aux_mb, norms = gradient_step(
-                *carry, batch, episodes, price, state.update
-            )
-            return (params, opt_state), (aux_mb.metrics, norms)
-
-        (params, opt_state), (steps, norms) = jax.lax.scan(
-            step, (state.params, state.opt_state), minibatches
-        )
-        # the batch's episodes, and each loss term and gradient norm averaged over the steps
-        metrics = {**jax.tree.map(jnp.mean, steps), **aux.metrics, **jax.tree.map(jnp.mean, norms)}
-        return params, opt_state, aux, metrics, jnp.isfinite(steps["loss"]).all()
-
     def update(state: LearnerState):
         key, k_roll = jax.random.split(state.key)
         price = bit_budget.weight(state.budget)
@@ -185,7 +176,9 @@ def make_learner(
             metrics = {**aux.metrics, **norms}
             finite = jnp.isfinite(metrics["loss"])
         else:
-            params, opt_state, aux, metrics, finite = replayed_steps(state, k_roll, in_loss)
+            params, opt_state, aux, metrics, finite = _replayed_steps(
+                config.num_envs, replay, gradient_step, state, k_roll, in_loss
+            )
         params = bit_budget.decoupled_update(
             config.budget,
             params,
@@ -195,12 +188,7 @@ def make_learner(
             price,
             config.channel.link_penalty,
         )
-        # Divergence is flagged here, inside the compiled update (no host sync per step); the
-        # sweep stops at the end of the chunk and keeps its last good checkpoint. A gradient
-        # that stopped being finite shows in its norm.
-        for x in jax.tree.leaves(params) + [v for n, v in metrics.items() if "grad_norm" in n]:
-            finite &= jnp.isfinite(x).all()
-        metrics["nonfinite"] = 1.0 - finite.astype(jnp.float32)
+        metrics["nonfinite"] = _nonfinite(params, metrics, finite)
         controller = bit_budget.update(
             config.budget,
             state.budget,
@@ -223,9 +211,58 @@ def make_learner(
         traj = rollout(team, env, config.channel, actor_params, key, num_episodes, greedy=greedy)
         return episode_metrics(traj)
 
-    return Learner(
-        config, env, team, tx, init, update, update_chunk, train, evaluate, loss_fn, expert
+    loss = loss_fn if replay is None else _first_minibatch_loss(config.num_envs, replay, loss_fn)
+    return Learner(config, env, team, tx, init, update, update_chunk, train, evaluate, loss, expert)
+
+
+def _batch_success(metrics: dict, update) -> jax.Array:
+    """The success rate the budget controller sees by default: the batch's."""
+    return metrics["success_rate"]
+
+
+def _replayed_steps(num_envs: int, replay: Replay, gradient_step, state: LearnerState, key, price):
+    """Play the batch once, then ``epochs`` passes of ``minibatches`` gradient steps over it;
+    the batch's episodes' metrics, and each loss term and gradient norm averaged over the
+    steps."""
+    k_roll, k_order = jax.random.split(key)
+    batch, aux = replay.collect(state.params, k_roll, state.update)
+    orders = jax.vmap(lambda k: jax.random.permutation(k, num_envs))(
+        jax.random.split(k_order, replay.epochs)
     )
+    minibatches = orders.reshape(replay.epochs * replay.minibatches, num_envs // replay.minibatches)
+
+    def step(carry, episodes):
+        params, opt_state, aux_mb, norms = gradient_step(
+            *carry, batch, episodes, price, state.update
+        )
+        return (params, opt_state), (aux_mb.metrics, norms)
+
+    (params, opt_state), (steps, norms) = jax.lax.scan(
+        step, (state.params, state.opt_state), minibatches
+    )
+    metrics = {**jax.tree.map(jnp.mean, steps), **aux.metrics, **jax.tree.map(jnp.mean, norms)}
+    return params, opt_state, aux, metrics, jnp.isfinite(steps["loss"]).all()
+
+
+def _first_minibatch_loss(num_envs: int, replay: Replay, loss_fn: ReplayLoss) -> Loss:
+    """A replaying learner's :class:`Loss`: the loss of the first minibatch of the batch of
+    ``key`` (the shape every replayed step has)."""
+
+    def loss(params, key, price, update):
+        batch, _ = replay.collect(params, key, update)
+        return loss_fn(params, batch, jnp.arange(num_envs // replay.minibatches), price, update)
+
+    return loss
+
+
+def _nonfinite(params, metrics: dict, finite) -> jax.Array:
+    """1.0 when the loss (``finite`` False), a gradient or a parameter stopped being finite,
+    else 0.0. Divergence is flagged inside the compiled update (no host sync per step); the
+    sweep stops at the end of the chunk and keeps its last good checkpoint. A gradient that
+    stopped being finite shows in its norm."""
+    for x in jax.tree.leaves(params) + [v for n, v in metrics.items() if "grad_norm" in n]:
+        finite &= jnp.isfinite(x).all()
+    return 1.0 - finite.astype(jnp.float32)
 
 
 def masked_mean(valid: jax.Array) -> Callable:

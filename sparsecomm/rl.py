@@ -27,8 +27,6 @@ resumable pieces (checkpoints, progress, logs).
 
 from __future__ import annotations
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
 import optax
@@ -95,9 +93,9 @@ def clip_each_part(max_norm: float) -> optax.GradientTransformation:
     )
 
 
-def make_train(config: RLConfig, env=None) -> Learner:
-    """The learner of ``config``; ``env``: another task than ``config.env`` (``make_team``)."""
-    env, team = make_team(config, env)
+def make_train(config: RLConfig) -> Learner:
+    """The learner of ``config``, on the task ``config.env`` names (``make_team``)."""
+    env, team = make_team(config)
     tx = optax.chain(clip_each_part(config.max_grad_norm), optax.adam(config.learning_rate()))
     if config.algo == "ppo":
         return _make_ppo(config, env, team, tx)
@@ -181,7 +179,7 @@ def _objective(config: RLConfig, traj: Trajectory, pg, values, targets, lam, upd
         entropy=mean(entropy.mean(-1)),
         penalty_weight=penalty_weight,
     )
-    return loss, LossAux(metrics, traj.hidden, traj.valid)
+    return loss, LossAux(metrics, traj.aside.hidden, traj.valid)
 
 
 class Batch(struct.PyTreeNode):
@@ -229,7 +227,7 @@ def _make_ppo(config: RLConfig, env, team, tx) -> Learner:
         adv, targets, adv_std = advantages(config, traj, critic(params, traj.states))
         logp = action_log_probs(traj)
         batch = Batch(key, traj.actions, logp, adv, targets, traj.states, adv_std)
-        return batch, LossAux(episode_metrics(traj), traj.hidden, traj.valid)
+        return batch, LossAux(episode_metrics(traj), traj.aside.hidden, traj.valid)
 
     def loss_fn(params, batch: Batch, episodes, lam, update):
         def pick(x):
@@ -263,13 +261,4 @@ def _make_ppo(config: RLConfig, env, team, tx) -> Learner:
         return loss, aux
 
     replay = Replay(collect, config.ppo_epochs, config.ppo_minibatches)
-    learner = make_learner(config, loss_fn, tx, env=env, team=team, replay=replay)
-
-    def loss_of_key(params, key, lam, update):
-        """The loss of the first minibatch of the batch of ``key`` (the shape every replayed
-        step has; ``memory.estimate`` sizes the update by it)."""
-        batch, _ = collect(params, key, update)
-        episodes = jnp.arange(config.num_envs // config.ppo_minibatches)
-        return loss_fn(params, batch, episodes, lam, update)
-
-    return dataclasses.replace(learner, loss=loss_of_key)
+    return make_learner(config, loss_fn, tx, env=env, team=team, replay=replay)

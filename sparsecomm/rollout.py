@@ -28,6 +28,7 @@ their backward pass, are those of the live links alone.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 from typing import Any, NamedTuple
 
@@ -38,7 +39,7 @@ from flax import struct
 from sparsecomm import channel, scaling
 from sparsecomm.agents import Team
 from sparsecomm.channel import ChannelConfig
-from sparsecomm.envs.navigation import NavigationEnv
+from sparsecomm.envs.task import Task
 from sparsecomm.sharding import split_episodes
 
 
@@ -47,12 +48,24 @@ class Expert:
     """An action source that may label or drive episodes (imitation, DAgger).
 
     ``init(batch) -> carry`` and ``step(carry, key, env_state, obs) -> (carry, actions)`` where
-    ``env_state`` is the batched :class:`NavState` (a centralised expert may read every goal),
+    ``env_state`` is the task's batched state (a centralised expert may read every goal),
     ``obs`` the (B, K, obs_dim) observations, and actions (B, K) int32.
     """
 
     init: Callable[[int], Any] = struct.field(pytree_node=False)
     step: Callable = struct.field(pytree_node=False)
+
+
+@struct.dataclass
+class Aside:
+    """What a step records only when asked (``keep_*``) or when its channel has it; ``None``
+    otherwise. Leading axes (T, B)."""
+
+    env_states: Any = None  # the task's batched state per step (``keep_states``)
+    hidden: Any = None  # (T, B, K, H) GRU states the messages came from (``keep_hidden``)
+    symbols: Any = None  # (T, B, K, K-1, C) int32 symbols of each link (``keep_symbols``)
+    lost: Any = None  # (T, B) packets the receivers lost (a noisy channel)
+    links: Any = None  # (T, B) links that existed (routing, ``sparsecomm.scaling``)
 
 
 @struct.dataclass
@@ -66,25 +79,21 @@ class Trajectory:
     states: jax.Array  # (T, B, state_dim) global state before the step (critic input)
     valid: jax.Array  # (T, B) the step belongs to the episode
     dones: jax.Array  # (T, B) the episode ended at this step
-    success: jax.Array  # (T, B) all agents at their goals after this step
+    success: jax.Array  # (T, B) the team succeeded at this step
     penalty: jax.Array  # (T, B) surrogate bit penalty, summed over links and elements
     payload_bits: jax.Array  # (T, B) real payload bits sent by the team
     wire_bits: jax.Array  # (T, B) bits on the wire, framing included
     speaking: jax.Array  # (T, B) links whose packet is not empty (silent links send nothing)
     link_bits: jax.Array  # (T, B, K, K) payload bits sent i -> j (zero diagonal)
     msg_log_probs: jax.Array  # (T, B, K) log-prob of sender i's symbols ("reinforced"; else 0)
-    env_states: Any = None  # batched NavState per step (only when ``keep_states``)
-    hidden: Any = None  # (T, B, K, H) GRU states the messages came from (only ``keep_hidden``)
-    symbols: Any = None  # (T, B, K, K-1, C) int32 symbols of each link (only ``keep_symbols``)
-    lost: Any = None  # (T, B) packets the receivers lost (only with ``ChannelConfig.noise``)
-    links: Any = None  # (T, B) links that existed (only with routing, ``sparsecomm.scaling``)
-    datagram_bits: Any = None  # (T, B) bits of the frames the speaking links' datagrams carry
+    datagram_bits: jax.Array  # (T, B) bits of the frames the speaking links' datagrams carry
+    aside: Aside = Aside()  # the optional records
 
 
 class Carry(NamedTuple):
     """What one step of the scan hands the next, leading axis (B,) episodes."""
 
-    env_state: Any  # batched NavState
+    env_state: Any  # the task's batched state
     obs: jax.Array  # (B, K, obs_dim) observations
     msgs: jax.Array  # (B, K, (K-1) C) messages received, by recipient (``channel.deliver``)
     gru: jax.Array  # (B, K, H) the actors' GRU states
@@ -98,7 +107,7 @@ class Carry(NamedTuple):
 
 def rollout(
     team: Team,
-    env: NavigationEnv,
+    env: Task,
     channel_cfg: ChannelConfig,
     actor_params,
     key: jax.Array,
@@ -137,177 +146,305 @@ def rollout(
       actions: (T, b, K) int32 actions to execute instead of the learners' (a replay: the
         episodes of a batch played again with new parameters, their messages recomputed from
         the same dither; ``log_probs`` are the learners' own).
+
+    What a step may be is decided here, once, before the scan: how actions are chosen
+    (:func:`_action_rule`: sampled, greedy or replayed, mixed with an expert's), which links
+    exist (:func:`_link_rule`: all, masked or listed), what the wire does (a noisy channel's
+    ``LossyLinks``) and what is kept (:class:`Aside`). The step itself reads act, talk, step,
+    record.
     """
-    k = env.num_agents
-    num_steps = env.config.max_steps
+    if episodes is not None and (expert is not None or not channel_cfg.noise.clean):
+        raise ValueError("rollout(episodes=...) needs a clean channel and no expert")
+    listed = listed_links(team, channel_cfg) and not keep_symbols
+    draws = _draws(team, env, channel_cfg, key, num_envs, episodes, actions, expert, listed)
+    plan = _Plan(
+        team,
+        env,
+        channel_cfg,
+        actor_params,
+        draws.chan_keys,
+        draws.lossy,
+        _action_rule(greedy, actions is not None, expert, beta),
+        _link_rule(team, env, channel_cfg, draws.chan_keys, draws.num_envs, listed),
+        {"env_states": keep_states, "hidden": keep_hidden, "symbols": keep_symbols},
+    )
+    init = _first_carry(team, env, channel_cfg, draws, expert, listed, plan.route.masked)
+    step = functools.partial(_step, plan)
+    if remat:
+        step = jax.checkpoint(step)
+    _, (traj, priced) = jax.lax.scan(step, init, draws.noise)
+    if channel_cfg.prices_later:  # the whole rollout's links priced at once
+        z, live = priced
+        return traj.replace(penalty=channel.price(channel_cfg, z, live).sum((-2, -1)))
+    return traj
+
+
+class _Plan(NamedTuple):
+    """What every step of one :func:`rollout` is, decided before the scan."""
+
+    team: Team
+    env: Task
+    channel_cfg: ChannelConfig
+    actor_params: Any
+    chan_keys: jax.Array  # (B,) each episode's channel key
+    lossy: Any  # channel.lossy.LossyLinks of a noisy channel, else None
+    choose: Callable  # how actions are chosen (:func:`_action_rule`)
+    route: Any  # which links exist (:class:`_LinkRule`)
+    keep: dict  # which optional records are kept (:class:`Aside`)
+
+
+def _step(plan: _Plan, carry: Carry, noise):
+    """One step of every episode: act, talk, step, record."""
+    team, env, cfg, route = plan.team, plan.env, plan.channel_cfg, plan.route
+    t, state = noise["t"], carry.env_state
+    # act: the actors read their observations and last step's messages
+    gru, logits, z = team.act(plan.actor_params, carry.gru, carry.obs, carry.msgs, carry.heard)
+    log_probs = jax.nn.log_softmax(logits)
+    acts, labels, expert_carry = plan.choose(logits, log_probs, noise, carry.expert, state, carry)
+    # talk: this step's links, the sender side, the wire, the receiver side, the inboxes
+    z, u, live, senders = route.links(state, z, t, noise)
+    wire = None if plan.lossy is None else _noisy_wire(plan.lossy, noise["loss"], u, carry.links)
+    ex = exchange(
+        cfg,
+        team.reads_sent,
+        z,
+        u,
+        plan.chan_keys,
+        t,
+        carry.prev_symbols,
+        last=carry.last,
+        held=carry.sent,
+        live=live,
+        senders=senders,
+        wire=wire,
+    )
+    links, lost = (carry.links, None) if plan.lossy is None else ex.wire
+    # step: the world moves
+    valid = ~state.done
+    global_state = jax.vmap(env.global_state)(state)
+    next_obs, next_state, rewards, dones, info = jax.vmap(env.step)(noise["env"], state, acts)
+    # record: the core fields, and aside what is kept (``keep``) or the channel has
+    kept = dict(env_states=state, hidden=jax.lax.stop_gradient(gru), symbols=ex.sent.symbols)
+    aside = _aside(plan.keep, kept, lost, live)
+    record = _record(
+        ex.sent,
+        route.pairs(ex.sent.payload_bits, senders),
+        cfg.prices_later,
+        aside,
+        log_probs=log_probs,
+        actions=acts.astype(jnp.int32),
+        expert_actions=labels.astype(jnp.int32),
+        rewards=rewards,
+        states=global_state,
+        valid=valid,
+        dones=dones[:, 0] & valid,
+        success=info["success"] & valid,
+    )
+    carry = Carry(
+        env_state=next_state,
+        obs=next_obs,
+        msgs=ex.msgs,
+        gru=gru,
+        expert=expert_carry,
+        prev_symbols=ex.sent.symbols,
+        links=links,
+        last=ex.got.last,
+        heard=route.heard(live),
+        sent=ex.own,
+    )
+    return carry, (record, (ex.z, live) if cfg.prices_later else None)
+
+
+class _Draws(NamedTuple):
+    """A batch's randomness, drawn before the loop in a few large vectorised draws."""
+
+    num_envs: int  # the episodes played (a minibatch's share with ``episodes``)
+    reset_keys: jax.Array  # (B,) each episode's reset key
+    chan_keys: jax.Array  # (B,) each episode's channel key (split over the mesh)
+    noise: dict  # the scan's inputs by step: "t", "env", "dither", "gumbel" or "replay", ...
+    lossy: Any  # channel.lossy.LossyLinks of a noisy channel, else None
+
+
+def _draws(team, env, channel_cfg, key, num_envs, episodes, actions, expert, listed) -> _Draws:
+    """Every step's randomness (:func:`world_draws`, :func:`agent_draws`, the dither, the
+    expert's and the wire's), a minibatch's share of it with ``episodes``, split over the
+    mesh's episodes axis; ``listed`` links draw their dither at each step instead."""
+    k, num_steps = env.num_agents, env.max_steps
     reset_keys, env_keys = world_draws(key, num_envs, num_steps)
     chan_keys, gumbel = agent_draws(key, num_envs, num_steps, k, team.num_actions)
     if episodes is not None:  # a minibatch: its episodes' share of the batch's randomness
-        if expert is not None or not channel_cfg.noise.clean:
-            raise ValueError("rollout(episodes=...) needs a clean channel and no expert")
         reset_keys, chan_keys = reset_keys[episodes], chan_keys[episodes]
         env_keys, gumbel = env_keys[:, episodes], gumbel[:, episodes]
         num_envs = episodes.shape[0]
-    obs, state = jax.vmap(env.reset)(reset_keys)
-    c = channel_cfg.num_elements
-    # Links that follow positions, or an inbox that reads which links arrived (``scaling``):
-    # the receivers are told what they heard. Otherwise (the paper's team) every link exists.
-    masked = team.routed or team.cfg.aggregate != "concat"
-    # With ``neighbours`` k and an inbox that reads only what it heard, only the K k live links
-    # are computed: listed by recipient (``scaling.nearest_senders``, ``channel.listed``), the
-    # same messages, bits and penalty as the masked K (K - 1) links, at a cost O(K k).
-    gathered = listed_links(team, channel_cfg) and not keep_symbols
-    replay = actions is not None
-    # All the step's randomness is drawn before the loop, in a few large vectorised draws.
     noise = {
         "t": jnp.arange(num_steps),
         "env": env_keys,
-        "dither": None if gathered else channel.link_dither(channel_cfg, chan_keys, num_steps, k),
+        "dither": None if listed else channel.link_dither(channel_cfg, chan_keys, num_steps, k),
     }
-    noise.update({"replay": actions} if replay else {"gumbel": gumbel})
+    noise.update({"replay": actions} if actions is not None else {"gumbel": gumbel})
     if expert is not None:
         keys = _batch_keys(key)
         noise["expert"] = jax.random.split(keys["expert"], num_steps)
         noise["mix"] = jax.random.uniform(keys["mix"], (num_steps, num_envs, 1))
     lossy = None
-    keeps_last = channel_cfg.holds
     if channel_cfg.speaks and not channel_cfg.noise.clean:
-        keeps_last |= channel_cfg.noise.on_drop == "last"
         lossy = channel.lossy.LossyLinks(channel_cfg, key, num_envs, k, num_steps)
         noise["loss"] = lossy.step_keys
     # Episodes are independent: split them over the mesh's episodes axis, if there is one.
     batched = ("env", "gumbel", "replay", "dither", "mix")
     noise.update(split_episodes({n: v for n, v in noise.items() if n in batched}, axis=1))
-    heard_links = team.cfg.neighbours if gathered else k - 1  # links each recipient is listed
+    return _Draws(num_envs, reset_keys, split_episodes(chan_keys, axis=0), noise, lossy)
+
+
+def _first_carry(team, env, channel_cfg, draws: _Draws, expert, listed: bool, masked: bool):
+    """The scan's first :class:`Carry`: the episodes reset, empty inboxes and link states."""
+    k, c, num_envs = env.num_agents, channel_cfg.num_elements, draws.num_envs
+    obs, state = jax.vmap(env.reset)(draws.reset_keys)
+    heard_links = team.cfg.neighbours if listed else k - 1  # links each recipient is listed
     sent_in = (k - 1) * c if team.reads_sent else 0  # what the agent's own links last delivered
-    keeps_sent = keeps_delivered(team, channel_cfg)
-    later = channel_cfg.prices_later  # never with gathered links (``lists_links``)
+    keeps_last = channel_cfg.holds or (
+        draws.lossy is not None and channel_cfg.noise.on_drop == "last"
+    )
+    width = heard_links * (c + channel_cfg.holds) + sent_in
     init = Carry(
         env_state=state,
         obs=obs,
-        msgs=jnp.zeros((num_envs, k, heard_links * (c + channel_cfg.holds) + sent_in), jnp.float32),
+        msgs=jnp.zeros((num_envs, k, width), jnp.float32),
         gru=team.initial_carry(num_envs),
         expert=expert.init(num_envs) if expert is not None else None,
         prev_symbols=jnp.zeros((num_envs, k, heard_links, c), jnp.int32),
-        links=None if lossy is None else lossy.init,
+        links=None if draws.lossy is None else draws.lossy.init,
         last=jnp.zeros((num_envs, k, k - 1, c), jnp.float32) if keeps_last else None,
         heard=jnp.zeros((num_envs, k, heard_links), bool) if masked else None,
-        sent=jnp.zeros((num_envs, k, k - 1, c), jnp.float32) if keeps_sent else None,
+        sent=jnp.zeros((num_envs, k, k - 1, c), jnp.float32)
+        if keeps_delivered(team, channel_cfg)
+        else None,
     )
-    init = split_episodes(init._replace(expert=None), axis=0)._replace(expert=init.expert)
-    chan_keys = split_episodes(chan_keys, axis=0)
+    return split_episodes(init._replace(expert=None), axis=0)._replace(expert=init.expert)
 
-    def step(carry: Carry, noise):
-        t, state, obs = noise["t"], carry.env_state, carry.obs
-        gru, logits, z = team.act(actor_params, carry.gru, obs, carry.msgs, carry.heard)
-        log_probs = jax.nn.log_softmax(logits)
-        if replay:  # the batch's own actions, played again
-            actions = noise["replay"]
-        elif greedy:
-            actions = jnp.argmax(logits, -1)
-        else:  # Gumbel-max: a sample of the categorical distribution of ``logits``
-            actions = jnp.argmax(jax.lax.stop_gradient(log_probs) + noise["gumbel"], -1)
-        expert_carry = carry.expert
-        if expert is not None:
-            expert_carry, expert_actions = expert.step(
-                expert_carry, noise["expert"], state, carry.obs
-            )
-            use_expert = noise["mix"] < beta
-            actions = jnp.where(use_expert, expert_actions, actions)
-        else:
-            expert_actions = jnp.full(actions.shape, -1)
-        # The channel: this step's links (None: all of them), the sender side, the noise on the
-        # wire, the receiver side, and the messages routed to their recipients for step t + 1.
-        routing = senders = None
-        if gathered:  # the k links each recipient hears, and only those
+
+def _action_rule(greedy: bool, replay: bool, expert: Expert | None, beta) -> Callable:
+    """How a step's actions are chosen, decided once: ``choose(logits, log_probs, noise,
+    expert_carry, state, carry) -> (actions, expert labels (-1: none), expert_carry)``. The
+    learners' own actions are the batch's (a replay), their most probable (``greedy``) or a
+    Gumbel-max sample of ``logits``; with an expert, its action is executed instead with
+    probability ``beta``."""
+    if replay:  # the batch's own actions, played again
+
+        def own(logits, log_probs, noise):
+            return noise["replay"]
+    elif greedy:
+
+        def own(logits, log_probs, noise):
+            return jnp.argmax(logits, -1)
+    else:  # Gumbel-max: a sample of the categorical distribution of ``logits``
+
+        def own(logits, log_probs, noise):
+            return jnp.argmax(jax.lax.stop_gradient(log_probs) + noise["gumbel"], -1)
+
+    if expert is None:
+
+        def choose(logits, log_probs, noise, expert_carry, state, carry):
+            acts = own(logits, log_probs, noise)
+            return acts, jnp.full(acts.shape, -1), expert_carry
+
+        return choose
+
+    def mixed(logits, log_probs, noise, expert_carry, state, carry):
+        acts = own(logits, log_probs, noise)
+        expert_carry, labels = expert.step(expert_carry, noise["expert"], state, carry.obs)
+        return jnp.where(noise["mix"] < beta, labels, acts), labels, expert_carry
+
+    return mixed
+
+
+class _LinkRule(NamedTuple):
+    """Which links exist at a step and how they are laid out, decided once (:func:`_link_rule`)."""
+
+    links: Callable  # (state, z, t, noise) -> (z, dither, live (None: all), senders or None)
+    heard: Callable  # live -> what the recipients are told they heard (the carry's ``heard``)
+    pairs: Callable  # (payload bits by link, senders) -> (B, K, K) bits sent i -> j
+    listed: bool  # only the live links are computed, listed by recipient
+    masked: bool  # the recipients are told which links they heard
+
+
+def _link_rule(team, env, channel_cfg, chan_keys, num_envs: int, listed: bool) -> _LinkRule:
+    """The links of a step. The paper's team: every link, ``live`` None. Links that follow
+    positions, or an inbox that reads which links arrived (``scaling``): a mask of the links
+    that exist, and the receivers are told what they heard. With ``neighbours`` k and such an
+    inbox, only the K k live links are computed, listed by recipient
+    (``scaling.nearest_senders``, ``channel.listed``): the same messages, bits and penalty as
+    the masked K (K - 1) links, at a cost O(K k) (``listed``: :func:`listed_links`, unless
+    the symbols of every link are kept)."""
+    k, cfg = env.num_agents, team.cfg
+    masked = team.routed or cfg.aggregate != "concat"
+    positions = jax.vmap(env.positions) if team.routed else None  # (B, K, 2)
+    if listed:
+
+        def gathered(state, z, t, noise):
             senders, live = scaling.nearest_senders(
-                state.pos, team.cfg.neighbours, team.cfg.radius, team.cfg.hears
+                positions(state), cfg.neighbours, cfg.radius, cfg.hears
             )
             live = live if channel_cfg.speaks else jnp.zeros_like(live)
-            z = channel.listed(z, senders, 1)
             u = channel.listed_dither(channel_cfg, chan_keys, t, senders)
-        else:
-            if masked:
-                routing = scaling.routing_mask(
-                    state.pos, team.cfg.neighbours, team.cfg.radius, team.cfg.hears
-                )
-            live = channel.live_links(channel_cfg, routing, k, (num_envs,))
-            u = noise["dither"]
-        wire = None
-        if lossy is not None:  # packets lost, late, or corrupted
+            return channel.listed(z, senders, 1), u, live, senders
 
-            def wire(sent):
-                arrived, ok, links, lost = lossy.step(noise["loss"], sent, u, carry.links)
-                return arrived, ok, (links, lost)
+        return _LinkRule(
+            gathered, lambda live: live, channel.listed_pairs, listed=True, masked=masked
+        )
 
-        ex = exchange(
-            channel_cfg,
-            team.reads_sent,
-            z,
-            u,
-            chan_keys,
-            t,
-            carry.prev_symbols,
-            last=carry.last,
-            held=carry.sent,
-            live=live,
-            senders=senders,
-            wire=wire,
-        )
-        sent, msgs = ex.sent, ex.msgs
-        links, lost = (carry.links, None) if lossy is None else ex.wire
-        global_state = jax.vmap(env.global_state)(state)
-        valid = ~state.done
-        next_obs, next_state, rewards, dones, info = jax.vmap(env.step)(
-            noise["env"], state, actions
-        )
-        record = Trajectory(
-            log_probs=log_probs,
-            actions=actions.astype(jnp.int32),
-            expert_actions=expert_actions.astype(jnp.int32),
-            rewards=rewards,
-            states=global_state,
-            valid=valid,
-            dones=dones[:, 0] & valid,
-            success=info["success"] & valid,
-            penalty=jnp.zeros(()) if later else sent.penalty.sum((-2, -1)),
-            payload_bits=sent.payload_bits.sum((-2, -1)),
-            wire_bits=sent.wire_bits.sum((-2, -1)),
-            speaking=(sent.wire_bits > 0).sum((-2, -1)).astype(jnp.float32),
-            link_bits=channel.pairs(sent.payload_bits)
-            if senders is None
-            else channel.listed_pairs(sent.payload_bits, senders),
-            msg_log_probs=sent.log_prob,
-            env_states=state if keep_states else None,
-            hidden=jax.lax.stop_gradient(gru) if keep_hidden else None,
-            symbols=sent.symbols if keep_symbols else None,
-            lost=lost,
-            links=None if live is None else live.sum((-2, -1)).astype(jnp.float32),
-            datagram_bits=(sent.wire_bits if sent.frame_bits is None else sent.frame_bits).sum(
-                (-2, -1)
-            ),
-        )
-        carry = Carry(
-            env_state=next_state,
-            obs=next_obs,
-            msgs=msgs,
-            gru=gru,
-            expert=expert_carry,
-            prev_symbols=sent.symbols,
-            links=links,
-            last=ex.got.last,
-            heard=None if live is None else live if gathered else channel.inbox(live),
-            sent=ex.own,
-        )
-        return carry, (record, (ex.z, live) if later else None)
+    def mask(state):
+        if team.routed:
+            return scaling.routing_mask(positions(state), cfg.neighbours, cfg.radius, cfg.hears)
+        return jnp.broadcast_to(~jnp.eye(k, dtype=bool), (num_envs, k, k))  # every link
 
-    if remat:
-        step = jax.checkpoint(step)
-    _, (traj, priced) = jax.lax.scan(step, init, noise)
-    if later:  # the whole rollout's links priced at once (``ChannelConfig.prices_later``)
-        z, live = priced
-        return traj.replace(penalty=channel.price(channel_cfg, z, live).sum((-2, -1)))
-    return traj
+    def by_slot(state, z, t, noise):
+        routing = mask(state) if masked else None
+        return z, noise["dither"], channel.live_links(channel_cfg, routing, k, (num_envs,)), None
+
+    def heard(live):
+        return None if live is None else channel.inbox(live)
+
+    return _LinkRule(
+        by_slot, heard, lambda bits, senders: channel.pairs(bits), listed=False, masked=masked
+    )
+
+
+def _noisy_wire(lossy, keys, u, state) -> Callable:
+    """The wire of a noisy channel at one step: ``wire(sent) -> (arrived, ok, (link state,
+    packets lost))`` (packets lost, late or corrupted, ``channel.lossy.LossyLinks.step``)."""
+
+    def wire(sent):
+        arrived, ok, links, lost = lossy.step(keys, sent, u, state)
+        return arrived, ok, (links, lost)
+
+    return wire
+
+
+def _aside(keep: dict, kept: dict, lost, live) -> Aside:
+    """A step's optional records: those of ``kept`` that ``keep`` asks for, the packets lost
+    (a noisy channel) and the number of links that existed (``live``: None, all of them)."""
+    links = None if live is None else live.sum((-2, -1)).astype(jnp.float32)
+    return Aside(**{n: v if keep[n] else None for n, v in kept.items()}, lost=lost, links=links)
+
+
+def _record(sent, link_bits, later: bool, aside: Aside, **core) -> Trajectory:
+    """One step's record: its ``core`` fields, and what the links sent (``sent``), summed over
+    links: the penalty (0 when the channel ``prices_later``), payload and wire bits, the
+    speaking links and the bits of the frames their datagrams carry (each its sender's whole
+    frame; a channel without frames: the links' wire bits)."""
+    frames = sent.wire_bits if sent.frame_bits is None else sent.frame_bits
+    return Trajectory(
+        **core,
+        penalty=jnp.zeros(()) if later else sent.penalty.sum((-2, -1)),
+        payload_bits=sent.payload_bits.sum((-2, -1)),
+        wire_bits=sent.wire_bits.sum((-2, -1)),
+        speaking=(sent.wire_bits > 0).sum((-2, -1)).astype(jnp.float32),
+        link_bits=link_bits,
+        msg_log_probs=sent.log_prob,
+        datagram_bits=frames.sum((-2, -1)),
+        aside=aside,
+    )
 
 
 class Exchange(NamedTuple):
@@ -458,13 +595,12 @@ def episode_metrics(traj: Trajectory) -> dict[str, jax.Array]:
         "penalty": (traj.penalty * valid).sum() / steps,
     }
     k = traj.link_bits.shape[-1]
-    links = k * (k - 1) * valid if traj.links is None else traj.links * valid
+    links = k * (k - 1) * valid if traj.aside.links is None else traj.aside.links * valid
     metrics["speaking_fraction"] = (traj.speaking * valid).sum() / jnp.maximum(links.sum(), 1.0)
     metrics["datagrams_per_step"] = (traj.speaking * valid).sum() / steps
-    if traj.datagram_bits is not None:
-        metrics["datagram_bits_per_step"] = (traj.datagram_bits * valid).sum() / steps
-    if traj.lost is not None:
-        metrics["packets_lost_per_step"] = (traj.lost * valid).sum() / steps
-    if traj.links is not None:
-        metrics["links_per_step"] = (traj.links * valid).sum() / steps
+    metrics["datagram_bits_per_step"] = (traj.datagram_bits * valid).sum() / steps
+    if traj.aside.lost is not None:
+        metrics["packets_lost_per_step"] = (traj.aside.lost * valid).sum() / steps
+    if traj.aside.links is not None:
+        metrics["links_per_step"] = (traj.aside.links * valid).sum() / steps
     return metrics

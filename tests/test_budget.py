@@ -202,7 +202,7 @@ def test_message_penalty_of_the_head_matches_the_rollout(share, channel_cfg, fas
     actor = tr.team.init(jax.random.key(0))["actor"]
     traj = rollout(tr.team, tr.env, cfg.channel, actor, jax.random.key(1), 3, keep_hidden=True)
     head = actor["params"]["message"]
-    again = tr.team.message_penalty(head, traj.hidden, cfg.channel.link_penalty).sum(-1)
+    again = tr.team.message_penalty(head, traj.aside.hidden, cfg.channel.link_penalty).sum(-1)
     np.testing.assert_allclose(again, traj.penalty, rtol=1e-5)
 
 

@@ -172,13 +172,13 @@ def test_rollout_wire_bits_are_the_fitted_packets_of_every_link(tmp_path, fast_c
         return rollout(learner.team, learner.env, cfg, params, key, 8, keep_symbols=True)
 
     traj = play(paper.channel, jax.random.key(1))
-    links = np.asarray(traj.symbols).transpose(1, 2, 3, 0, 4).reshape(-1, 12, C)
+    links = np.asarray(traj.aside.symbols).transpose(1, 2, 3, 0, 4).reshape(-1, 12, C)
     fitted = fit(links, np.repeat(np.asarray(traj.valid).T, 6, axis=0), levels=LEVELS)
     path = tmp_path / "code.json"
     path.write_text(fitted.to_json())
     cfg = dataclasses.replace(paper.channel, code="fitted", code_file=str(path))
     traj = play(cfg, jax.random.key(2))
-    m = np.asarray(traj.symbols)
+    m = np.asarray(traj.aside.symbols)
     wire = np.asarray(traj.wire_bits)
     assert np.any(m != 0)
     for t in range(m.shape[0]):

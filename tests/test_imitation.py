@@ -32,7 +32,7 @@ def test_oracle_labels_every_step_and_drives_when_beta_is_one(fast_compile):
         keep_states=True,
     )
     expect = jax.vmap(jax.vmap(oracle_actions, (0, None)), (0, None))(
-        traj.env_states, im.env.config
+        traj.aside.env_states, im.env.config
     )
     np.testing.assert_array_equal(traj.expert_actions, expect)
     np.testing.assert_array_equal(traj.actions, traj.expert_actions)

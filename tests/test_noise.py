@@ -301,21 +301,21 @@ def test_rollout_under_erasure_loses_its_share_of_packets_and_delays_exactly(fas
         return rollout(learner.team, learner.env, ch, params, jax.random.key(1), 64, **kw)
 
     clean = play(NoiseConfig(), keep_symbols=True)
-    busy = (np.asarray(clean.symbols) != 0).any(-1).sum((2, 3))  # (T, B) packets sent
+    busy = (np.asarray(clean.aside.symbols) != 0).any(-1).sum((2, 3))  # (T, B) packets sent
     noisy = play(NoiseConfig(erasure=0.25), keep_symbols=True)
     # the senders' first step is the same (nothing received yet), later steps differ
-    np.testing.assert_array_equal(noisy.symbols[0], clean.symbols[0])
-    lost = np.asarray(noisy.lost)
-    sent = (np.asarray(noisy.symbols) != 0).any(-1).sum((2, 3))
+    np.testing.assert_array_equal(noisy.aside.symbols[0], clean.aside.symbols[0])
+    lost = np.asarray(noisy.aside.lost)
+    sent = (np.asarray(noisy.aside.symbols) != 0).any(-1).sum((2, 3))
     valid = np.asarray(noisy.valid)
     rate = lost[valid].sum() / sent[valid].sum()
     se = np.sqrt(0.25 * 0.75 / sent[valid].sum())
     assert busy[valid].sum() > 1000 and abs(rate - 0.25) < 5 * se, rate
-    assert clean.lost is None
+    assert clean.aside.lost is None
     everything = play(NoiseConfig(erasure=1.0), keep_symbols=True)
-    sent_all = (np.asarray(everything.symbols) != 0).any(-1).sum((2, 3))
+    sent_all = (np.asarray(everything.aside.symbols) != 0).any(-1).sum((2, 3))
     assert sent_all.sum() > 0
-    np.testing.assert_array_equal(np.asarray(everything.lost), sent_all)  # every packet lost
+    np.testing.assert_array_equal(np.asarray(everything.aside.lost), sent_all)  # every packet lost
 
 
 def test_delay_line_delivers_what_was_sent_d_steps_before_and_null_until_then():

@@ -34,13 +34,14 @@ def test_k10_rollouts_compile_and_run_on_cpu_and_masked_links_carry_zero_bits(fa
         assert team.in_dim == 4 + 2 + (11 if agg == "mean" else 1) + 10  # obs, inbox, id
         m = jax.device_get(episode_metrics(traj))
         assert all(np.isfinite(v) for v in m.values()) and m["bits_per_step"] > 0
-        mask = np.asarray(routing_mask(traj.env_states.pos, 3, radius))  # (T, B, K, K)
+        mask = np.asarray(routing_mask(traj.aside.env_states.pos, 3, radius))  # (T, B, K, K)
         assert np.isclose(m["links_per_step"], mask.sum() / mask[..., 0, 0].size)
         if radius is None:
             assert m["links_per_step"] == 30.0  # every agent hears its 3 nearest
         bits = np.asarray(traj.link_bits)  # (T, B, K, K) by sender, recipient; 0 diagonal
         assert not bits[~mask].any() and bits[mask].sum() > 0
-        assert not np.asarray(traj.symbols)[~np.asarray(by_sender(mask))].any()  # null symbols
+        null = ~np.asarray(by_sender(mask))
+        assert not np.asarray(traj.aside.symbols)[null].any()  # the null symbols
         np.testing.assert_allclose(bits.sum((-2, -1)), traj.payload_bits)
 
 
@@ -80,7 +81,7 @@ def test_masked_links_pass_zero_gradient(fast_compile, aggregate):
     agent = AgentConfig(neighbours=1, share_params=False, aggregate=aggregate)
     cfg = RLConfig(env=env, agent=agent)
     env_, team, params, traj = _run(cfg, num_envs=1, keep_states=True)
-    mask = np.asarray(routing_mask(traj.env_states.pos[0, 0], 1, None))  # (K, K) at step 0
+    mask = np.asarray(routing_mask(traj.aside.env_states.pos[0, 0], 1, None))  # (K, K) at step 0
 
     def step1_logp(head):
         p = jax.tree.map(lambda x: x, params)
@@ -296,8 +297,9 @@ def test_a_k10_team_on_live_links_plays_as_on_masked_links(fast_compile, aggrega
 
         runs[only] = jax.jit(play)(params), jax.jit(jax.grad(loss))(params)
     (mine, g_mine), (full, g_full) = runs[True], runs[False]
-    for name in ("actions", "rewards", "link_bits", "payload_bits", "links", "speaking"):
+    for name in ("actions", "rewards", "link_bits", "payload_bits", "speaking"):
         np.testing.assert_array_equal(getattr(mine, name), getattr(full, name), err_msg=name)
+    np.testing.assert_array_equal(mine.aside.links, full.aside.links)
     for name in ("wire_bits", "penalty", "datagram_bits"):  # sums of other lengths
         np.testing.assert_allclose(getattr(mine, name), getattr(full, name), rtol=1e-6)
     if aggregate == "mean":
@@ -305,4 +307,4 @@ def test_a_k10_team_on_live_links_plays_as_on_masked_links(fast_compile, aggrega
     np.testing.assert_allclose(mine.log_probs, full.log_probs, rtol=0, atol=1e-5)
     for a, g in zip(jax.tree.leaves(g_mine), jax.tree.leaves(g_full), strict=True):
         np.testing.assert_allclose(a, g, rtol=1e-4, atol=1e-5 * float(np.abs(g).max()))
-    assert float(mine.links.mean()) == 20.0 and float(mine.payload_bits.sum()) > 0
+    assert float(mine.aside.links.mean()) == 20.0 and float(mine.payload_bits.sum()) > 0
