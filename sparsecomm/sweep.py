@@ -37,7 +37,7 @@ FIRST_COLUMNS = ["seed", "lam", "budget", "update", "env_steps", "episodes"]
 WALL_CSV = "wall.csv"
 """A run folder's wall-clock log: one row ``update, wall_s`` per compiled chunk, ``wall_s`` the
 seconds the whole sweep (every run, one program) has trained when that chunk ended, compiling
-and earlier sessions of a resumed sweep included (updates redone after a resume are counted
+and earlier invocations of a resumed sweep included (updates redone after a resume are counted
 again: they cost time). Kept apart from ``metrics.csv`` so that the metrics of two identical
 runs stay identical byte for byte."""
 METRIC_ORDER = [
@@ -299,7 +299,7 @@ def run_sweep(
     elapsed time).
 
     The learner says the rest: its config (recorded in the checkpoint; ``config.num_envs``
-    episodes per update) and its task (``env.config.max_steps`` steps per episode, for the
+    episodes per update) and its task (``env.max_steps`` steps per episode, for the
     logged env steps). ``num_updates`` stops the sweep there instead of at
     ``config.num_updates`` (a resume continues from the checkpoint either way). ``kind``: what
     the run folder records (``sparsecomm.runfolder.KINDS``).
@@ -314,18 +314,10 @@ def run_sweep(
     """
     config = learner.config
     num_updates = config.num_updates if num_updates is None else num_updates
-    episodes_per_update = config.num_envs
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     runs = spec.runs()
-    keys, lams, budgets = run_arrays(config, runs)
-    mesh = make_mesh(len(runs), episodes_per_update, devices)
-    init, steps = compiled(learner, mesh is not None)
-    with use_mesh(mesh):
-        state = init(*place_runs((keys, lams, budgets), mesh))
-        if start_params is not None:
-            params = _start_from(state.params, start_params, start_from)
-            state = state.replace(params=params, opt_state=jax.vmap(learner.tx.init)(params))
+    mesh, steps, state = _first_state(learner, runs, devices, start_params, start_from)
     meta = {
         **sweep_record(kind, config, spec, start_from),
         "num_updates": num_updates,
@@ -335,53 +327,124 @@ def run_sweep(
     primary = is_primary()  # writes the logs and checkpoints
     start, elapsed = 0, 0.0
     if resume and checkpoint.exists(ckpt):  # a checkpoint that is there is used, or refused
-        old = checkpoint.load_meta(ckpt)
-        check_resumable(old, meta, ckpt)
-        state = place_runs(checkpoint.load(ckpt, state), mesh)
-        start = int(to_host(state.update).max())
-        elapsed = float(old.get("elapsed_s", 0.0))
+        state, start, elapsed = _resumed(ckpt, meta, state, mesh)
 
-    steps_per_update = episodes_per_update * learner.env.config.max_steps
+    log, prog = _open_outputs(
+        out, learner, runs, kind, num_updates, start, elapsed, tensorboard, progress, primary
+    )
+    done, chunks = start, 0
+    while done < num_updates:
+        n = min(chunk, num_updates - done)
+        state, metrics = _train_chunk(steps, state, mesh, done, n, runs, ckpt, log, prog)
+        done += n
+        chunks += 1
+        if chunks % checkpoint_every == 0 or done >= num_updates:
+            log.sync(done)
+            checkpoint.save(ckpt, state, {**meta, "elapsed_s": prog.elapsed()})
+        if on_chunk is not None:
+            on_chunk(done, state, metrics)
+    prog.bar.close()
+    log.close()
+    return Sweep(state, runs, prog.elapsed())
+
+
+def _open_outputs(
+    out: Path, learner, runs, kind, num_updates, start, elapsed, tensorboard, progress, primary
+):
+    """The sweep's :class:`_Log` (its CSVs cut back to update ``start`` on a resume) and
+    :class:`_Progress` (shown with ``progress``); only the primary process writes either."""
+    steps_per_update = learner.config.num_envs * learner.env.max_steps
     log = _Log(
         out,
         runs,
         steps_per_update,
-        episodes_per_update,
+        learner.config.num_envs,
         resume_at=start,
         tensorboard=tensorboard,
         primary=primary,
     )
-    bar = tqdm(
-        total=num_updates,
-        initial=start,
-        disable=not progress or not primary,
-        unit="upd",
-        desc=f"{kind} {len(runs)} run(s)",
-        dynamic_ncols=True,
+    prog = _Progress(
+        kind, runs, num_updates, start, elapsed, steps_per_update, progress and primary
     )
-    if progress and primary and start < num_updates:
-        tqdm.write(
-            f"{kind}: {len(runs)} run(s) from update {start}; compiling the first chunk "
-            "(this can take a minute) ..."
+    return log, prog
+
+
+def _train_chunk(steps, state, mesh, done: int, n: int, runs, ckpt: Path, log, prog):
+    """Advance every run ``n`` updates from update ``done``, returning the new state and the
+    chunk's metrics ({name: (runs, n)} on every process), logged with the wall clock, checked
+    for divergence (which stops the sweep) and shown on the progress bar."""
+    with use_mesh(mesh):
+        new_state, metrics = steps(state, n)
+    metrics = to_host(metrics)
+    log.write(metrics, done + 1)
+    _stop_if_diverged(metrics, runs, done + 1, ckpt, prog.bar, log)
+    log.write_wall(done + n, prog.elapsed())
+    prog.show(done + n, n, metrics)
+    return new_state, metrics
+
+
+def _first_state(learner: Learner, runs: list[Run], devices, start_params, start_from: str):
+    """The sweep's device mesh (or None), compiled ``update_chunk`` and first batched state:
+    every run's ``init``, placed on the mesh, and with ``start_params`` (one run's parameters,
+    no run axis) those parameters in every run with a fresh optimiser state."""
+    config = learner.config
+    keys, lams, budgets = run_arrays(config, runs)
+    mesh = make_mesh(len(runs), config.num_envs, devices)
+    init, steps = compiled(learner, mesh is not None)
+    with use_mesh(mesh):
+        state = init(*place_runs((keys, lams, budgets), mesh))
+        if start_params is not None:
+            params = _start_from(state.params, start_params, start_from)
+            state = state.replace(params=params, opt_state=jax.vmap(learner.tx.init)(params))
+    return mesh, steps, state
+
+
+def _resumed(ckpt: Path, meta: dict, state, mesh):
+    """The checkpoint's batched state (placed on ``mesh``; ``state`` gives its structure), the
+    update it ends at and the seconds trained before it, or :class:`CheckpointError` when it
+    records another run than ``meta``."""
+    old = checkpoint.load_meta(ckpt)
+    check_resumable(old, meta, ckpt)
+    state = place_runs(checkpoint.load(ckpt, state), mesh)
+    start = int(to_host(state.update).max())
+    elapsed = float(old.get("elapsed_s", 0.0))
+    return state, start, elapsed
+
+
+class _Progress:
+    """A sweep's progress bar (hidden unless ``show``) and clock: the seconds the sweep has
+    trained, earlier invocations of a resumed sweep and compiling included."""
+
+    def __init__(self, kind, runs, num_updates, start, elapsed, steps_per_update, show):
+        self.bar = tqdm(
+            total=num_updates,
+            initial=start,
+            disable=not show,
+            unit="upd",
+            desc=f"{kind} {len(runs)} run(s)",
+            dynamic_ncols=True,
         )
-    t0 = time.time()
-    done, chunks = start, 0
-    while done < num_updates:
-        n = min(chunk, num_updates - done)
-        with use_mesh(mesh):
-            new_state, metrics = steps(state, n)
-        metrics = to_host(metrics)  # {name: (runs, n)} on every process
-        log.write(metrics, done + 1)
-        _stop_if_diverged(metrics, runs, done + 1, ckpt, bar, log)
-        state = new_state
-        done += n
-        chunks += 1
-        log.write_wall(done, elapsed + time.time() - t0)
+        if show and start < num_updates:
+            tqdm.write(
+                f"{kind}: {len(runs)} run(s) from update {start}; compiling the first chunk "
+                "(this can take a minute) ..."
+            )
+        self.runs, self.start, self.before = len(runs), start, elapsed
+        self.steps_per_update = steps_per_update
+        self.t0 = time.time()
+
+    def elapsed(self) -> float:
+        """Seconds trained: those before this invocation plus this one's so far."""
+        return self.before + time.time() - self.t0
+
+    def show(self, done: int, n: int, metrics: dict) -> None:
+        """Advance the bar by a chunk's ``n`` updates, ending at update ``done``, and show its
+        last update's metrics (mean over runs) and the env steps per second of the whole sweep
+        (all runs, compilation included) in this invocation."""
         last = {k: float(metrics[k][:, -1].mean()) for k in METRIC_ORDER if k in metrics}
-        bar.update(n)
-        # env steps per second of the whole sweep (all runs), compilation included
-        sps = (done - start) * len(runs) * steps_per_update / (time.time() - t0)
-        bar.set_postfix(
+        self.bar.update(n)
+        sps = (done - self.start) * self.runs * self.steps_per_update / (time.time() - self.t0)
+        self.bar.set_postfix(
             succ=f"{last.get('success_rate', 0):.2f}",
             len=f"{last.get('episode_length', 0):.0f}",
             R=f"{last.get('group_reward', 0):.0f}",
@@ -390,14 +453,6 @@ def run_sweep(
             speak=f"{last.get('speaking_fraction', 0):.0%}",
             sps=f"{sps:.0f}",
         )
-        if chunks % checkpoint_every == 0 or done >= num_updates:
-            log.sync(done)
-            checkpoint.save(ckpt, state, {**meta, "elapsed_s": elapsed + time.time() - t0})
-        if on_chunk is not None:
-            on_chunk(done, state, metrics)
-    bar.close()
-    log.close()
-    return Sweep(state, runs, elapsed + time.time() - t0)
 
 
 RESUME_MAY_CHANGE = ("num_updates",)
@@ -436,6 +491,7 @@ def _differences(old, new, path: str = "", now: str = "now") -> list[str]:
 
 
 ADDED_FIELDS = {
+    ("config", "task"): "navigation",
     ("agent", "hears"): "nearest",
     ("agent", "live_links_only"): True,
     ("env", "success_rule"): "together",
@@ -443,7 +499,7 @@ ADDED_FIELDS = {
     ("agent", "reads_sent"): False,
     ("channel", "news_margin"): None,
 }
-"""Config fields added after run folders were first written (issues 31, 34), by (section, field),
+"""Config fields added after run folders were first written, by (section, field),
 with the default that does what runs before them did: a checkpoint without one reads back,
 and resumes, as that default."""
 

@@ -457,7 +457,7 @@ def test_core_replays_the_rollout_of_a_gated_holding_team(tmp_path, reads_sent, 
             ]
             frames = []
             for i, out in enumerate(outs):
-                np.testing.assert_array_equal(out.symbols, traj.symbols[t, b, i])
+                np.testing.assert_array_equal(out.symbols, traj.aside.symbols[t, b, i])
                 assert int(out.action) == int(traj.actions[t, b, i]), (b, t, i)
                 frame = channel.encode_sender(cfg, np.asarray(out.symbols), np.asarray(out.signal))
                 assert 8 * len(frame) == round(float(out.wire))
@@ -549,7 +549,7 @@ def test_silent_links_put_no_datagram_on_the_network(tmp_path, loss):
             spoke = {}
             for i, agent in enumerate(agents):
                 heard = None if t == steps else maps[i]  # the last step: no map
-                obs = rng.normal(size=agent._obs_dim()).astype(np.float32)
+                obs = rng.normal(size=agent.obs_dim).astype(np.float32)
                 data = AUTH.pack(wire.OBS, wire.WORLD, i, 0, t, wire.pack_obs(obs, heard))
                 assert agent._act(AUTH.parse(data)) is None
                 world.settimeout(5.0)
@@ -878,7 +878,7 @@ def test_an_agent_drops_what_is_not_sealed_or_not_expected(tmp_path):
     agent = Agent(args)
     try:
         stranger = wire.Auth(bytes(range(100, 132)))
-        obs = wire.pack_obs(np.zeros(agent._obs_dim(), np.float32), [False])
+        obs = wire.pack_obs(np.zeros(agent.obs_dim, np.float32), [False])
         dropped = [
             stranger.pack(wire.BYE, wire.WORLD, 0, 0, 0),
             stranger.pack(wire.OBS, wire.WORLD, 0, 0, 0, obs),

@@ -256,55 +256,24 @@ def transmit(
             "are the links' own (ChannelConfig.lists_links)"
         )
     code = cfg.code_obj if code is None else code
-    lead, c = z.shape[:-1], z.shape[-1]
     speak = None
     if live is not None:
         z = jnp.where(live[..., None], z, 0.0)
-    no_log_prob = jnp.zeros(lead[:-1], jnp.float32)
+    no_log_prob = jnp.zeros(z.shape[:-2], jnp.float32)
     if not cfg.speaks:
-        zeros = jnp.zeros(lead, jnp.float32)
-        return Sent(
-            jnp.zeros(z.shape, jnp.int32),
-            jnp.zeros_like(z),
-            zeros,
-            zeros,
-            zeros,
-            no_log_prob,
-            live,
-        )
+        return _silence(z, no_log_prob, live)
     if cfg.sends_values:
         m, z_hat, log_prob = jnp.zeros(z.shape, jnp.int32), z, no_log_prob
-        payload = jnp.full(lead, 32.0 * c)
-        wire, frame = _framed_bits(cfg, z, code, senders)
-        penalty = jnp.zeros(lead, jnp.float32)
+        payload, wire, frame, penalty = _value_bits(cfg, z, code, senders)
     else:
         if cfg.samples_symbols:
             if keys is None or t is None:
                 raise ValueError("ChannelConfig.mode 'reinforced' needs the episodes' keys and t")
             m, z_hat, log_prob = _sample_symbols(cfg, keys, t, z)
         else:
-            if u is None:
-                raise ValueError("ChannelConfig.mode 'discrete' needs the links' dither u")
-            penalty = price(cfg, z, live, code)
-            if cfg.link_gate:  # the last element opens the link: 1 with probability g
-                z, g, u, u_gate = z[..., :-1], z[..., -1], u[..., :-1], u[..., -1]
-                opens = jnp.clip(jnp.floor(g + u_gate + 0.5), 0.0, 1.0)
-            m, z_hat = quantize_dithered(z, u, cfg.levels)
-            if cfg.link_gate:  # a closed link sends nothing: every element null
-                m = jnp.where(opens[..., None] > 0, m, 0)
-                # and a link speaks when it sends something: an open gate whose symbols are
-                # all null sends no packet either (on a network it is silence)
-                speak = g + jax.lax.stop_gradient(opens * (m != 0).any(-1) - g)
+            z, m, z_hat, penalty, speak = _quantize_links(cfg, z, u, live, code)
             log_prob = no_log_prob
-        c = z.shape[-1]
-        payload = payload_bits(m, code).sum(-1).astype(jnp.float32)
-        frame = None
-        if cfg.code == "permuted":  # every link sends its C codewords, whatever they say
-            wire = jnp.full(payload.shape, float(permuted_bits(c, cfg.levels)))
-        elif isinstance(code, FittedCode):  # a fitted code's links send their own packets
-            wire = ecc_bits(wire_bits(m, code, prev=prev), cfg.ecc).astype(jnp.float32)
-        else:
-            wire, frame = _framed_bits(cfg, m, code, senders)
+        payload, wire, frame = _symbol_bits(cfg, m, code, prev, senders)
         if cfg.samples_symbols:
             penalty = cfg.link_penalty(z, code, live)
     if live is not None:
@@ -312,6 +281,78 @@ def transmit(
         payload, wire, penalty = (jnp.where(live, x, 0.0) for x in (payload, wire, penalty))
         speak = None if speak is None else jnp.where(live, speak, 0.0)
     return Sent(m.astype(jnp.int32), z_hat, penalty, payload, wire, log_prob, live, speak, frame)
+
+
+def _silence(z: jax.Array, no_log_prob: jax.Array, live) -> Sent:
+    """What the links of a channel that does not speak (``off``) carry: null symbols, zero
+    reconstructions, and no penalty, bits or log-probability (``no_log_prob``: zeros)."""
+    zeros = jnp.zeros(z.shape[:-1], jnp.float32)
+    return Sent(
+        jnp.zeros(z.shape, jnp.int32),
+        jnp.zeros_like(z),
+        zeros,
+        zeros,
+        zeros,
+        no_log_prob,
+        live,
+    )
+
+
+def _value_bits(cfg: ChannelConfig, z: jax.Array, code: Code, senders=None):
+    """The cost of links that send their values (``continuous``): 32 payload bits per float32
+    element, the wire and frame bits of the frames that carry them (:func:`_framed_bits`), and
+    no penalty. Returns ``(payload, wire, frame, penalty)``, each (..., K, K-1)."""
+    lead = z.shape[:-1]
+    payload = jnp.full(lead, 32.0 * z.shape[-1])
+    wire, frame = _framed_bits(cfg, z, code, senders)
+    penalty = jnp.zeros(lead, jnp.float32)
+    return payload, wire, frame, penalty
+
+
+def _quantize_links(cfg: ChannelConfig, z: jax.Array, u, live, code):
+    """The paper's links (``discrete``): each link's penalty (:func:`price`, on the signals
+    with their gate), then its symbols and reconstruction by dithered quantization
+    (``quantize_dithered``). With ``link_gate`` the last element of ``z`` and ``u`` is the
+    link's gate: it opens with probability ``g`` (its own dither), a closed link's symbols are
+    all null, and ``speak`` is 1 where the link sends something (an open gate and a symbol not
+    null), with the straight-through gradient of ``g``.
+
+    Returns:
+      ``(z, m, z_hat, penalty, speak)``: ``z`` the signals without the gate, ``speak`` None
+      without ``link_gate``.
+    """
+    if u is None:
+        raise ValueError("ChannelConfig.mode 'discrete' needs the links' dither u")
+    speak = None
+    penalty = price(cfg, z, live, code)
+    if cfg.link_gate:  # the last element opens the link: 1 with probability g
+        z, g, u, u_gate = z[..., :-1], z[..., -1], u[..., :-1], u[..., -1]
+        opens = jnp.clip(jnp.floor(g + u_gate + 0.5), 0.0, 1.0)
+    m, z_hat = quantize_dithered(z, u, cfg.levels)
+    if cfg.link_gate:  # a closed link sends nothing: every element null
+        m = jnp.where(opens[..., None] > 0, m, 0)
+        # and a link speaks when it sends something: an open gate whose symbols are
+        # all null sends no packet either (on a network it is silence)
+        speak = g + jax.lax.stop_gradient(opens * (m != 0).any(-1) - g)
+    return z, m, z_hat, penalty, speak
+
+
+def _symbol_bits(cfg: ChannelConfig, m: jax.Array, code, prev, senders=None):
+    """The cost of links that send symbols ``m`` (..., K, K-1, C): each link's payload bits
+    (``payload_bits`` of ``code``, summed over elements), its wire bits and the frame bits of
+    the datagram that carries it (``Sent.frame_bits``, None where links send their own
+    packets). A ``permuted`` code sends every link's C codewords whatever they say; a fitted
+    code's links send their own packets (``prev``: their symbols at the previous step); the
+    others are framed per sender (:func:`_framed_bits`). Returns ``(payload, wire, frame)``."""
+    payload = payload_bits(m, code).sum(-1).astype(jnp.float32)
+    frame = None
+    if cfg.code == "permuted":  # every link sends its C codewords, whatever they say
+        wire = jnp.full(payload.shape, float(permuted_bits(m.shape[-1], cfg.levels)))
+    elif isinstance(code, FittedCode):  # a fitted code's links send their own packets
+        wire = ecc_bits(wire_bits(m, code, prev=prev), cfg.ecc).astype(jnp.float32)
+    else:
+        wire, frame = _framed_bits(cfg, m, code, senders)
+    return payload, wire, frame
 
 
 def price(cfg: ChannelConfig, z: jax.Array, live=None, code=None) -> jax.Array:

@@ -77,8 +77,8 @@ class AgentArgs:
     greedy: bool = False
     """Take the most probable action instead of sampling."""
     on_drop: str = "null"
-    """A packet missing at the deadline is the ``null`` message (the issue's rule) or the link's
-    ``last`` good one (``NoiseConfig.on_drop``). Default: null."""
+    """A packet missing at the deadline is the ``null`` message (the paper's "nothing sent") or
+    the link's ``last`` good one (``NoiseConfig.on_drop``). Default: null."""
     faults: Faults = Faults()
     """Faults on this agent's outgoing packets."""
     jax_cache: str = ""
@@ -164,7 +164,8 @@ class Agent:
         self.sock = wire.udp_socket(listen)
         self.out = Outbox(self.sock)
         self.params = jax.tree.map(jnp.asarray, loaded.actor)
-        steps = self.steps = loaded.env.config.max_steps
+        self.obs_dim = loaded.env.obs_dim  # the task's (the world sends its observations)
+        steps = self.steps = loaded.env.max_steps
         key = core.batch_key(args.seed)
         self.chan, gumbel = core.agent_draws(key, args.episodes, steps, k, loaded.env.num_actions)
         self.gumbel = np.asarray(gumbel[:, :, self.i])  # (T, N, A)
@@ -192,7 +193,7 @@ class Agent:
 
     def _warm_up(self) -> None:
         """Compile every jitted function before saying hello."""
-        obs = np.zeros(self._obs_dim(), np.float32)
+        obs = np.zeros(self.obs_dim, np.float32)
         msgs = np.zeros(self.inbox_size, np.float32)
         self.step_fn(
             self.params,
@@ -207,9 +208,6 @@ class Agent:
         ).action.block_until_ready()
         ok = np.zeros(self.k - 1, bool)
         self.receive_fn(self.chan[0], 0, self._message_buffer(), ok, ~ok, self.last)
-
-    def _obs_dim(self) -> int:
-        return 4 + 2 * (self.k - 1)
 
     def _message_buffer(self) -> np.ndarray:
         """Room for one step's K - 1 incoming messages: the floats of a channel that sends
@@ -341,7 +339,6 @@ class Agent:
     def _act(self, obs: wire.Datagram):
         """One step: gather, rebuild, act, send. Returns a newer observation that arrived
         meanwhile, ``"bye"`` (after acting), or ``None``."""
-        d = self.args.deadlines
         b, t = obs.episode, obs.step
         arrived = time.monotonic()
         if b >= self.args.episodes or t >= self.gumbel.shape[0]:
@@ -352,29 +349,11 @@ class Agent:
             self._reset_episode(b)
         elif t <= self.t:
             return None
-        values, heard = wire.parse_obs(obs.payload, self._obs_dim(), self.k - 1)
+        values, heard = wire.parse_obs(obs.payload, self.obs_dim, self.k - 1)
         if values is None:
             self.counts["bad"] += 1
             return None
-        newer = None
-        missing = 0
-        if t == 0 or not self.cfg.speaks:  # nothing heard yet, or nothing ever sent
-            msgs = np.zeros(self.inbox_size, np.float32)
-        else:
-            if heard is None:  # no map: wait for every sender; one not heard is a loss
-                self.counts["no_map"] += 1
-                expect = np.ones(self.k - 1, bool)
-            else:
-                expect = heard
-            got, newer = self._gather(b, t - 1, arrived + d.message, expect)
-            silent = ~expect  # the map says: nothing was sent
-            ok = np.array([g is not None for g in got], bool) | silent
-            missing = int((~ok).sum())
-            message = self._message_buffer()
-            for r, g in enumerate(got):
-                if g is not None:
-                    message[r] = g
-            msgs, self.last = self.receive_fn(self.chan[b], t - 1, message, ok, silent, self.last)
+        msgs, missing, newer = self._messages(b, t, heard, arrived)
         self._prune(b, t)
         out = self.step_fn(
             self.params,
@@ -390,6 +369,58 @@ class Agent:
         self.carry, self.t, self.delivered = out.carry, t, out.delivered
         symbols, signal = np.asarray(out.symbols), np.asarray(out.signal)
         spoke = np.asarray(out.spoke, bool)
+        frame_bits, datagram, sent, sent_n = self._send_frame(b, t, symbols, signal, spoke)
+        self.sent_prev = symbols
+        report = self._report(out, rejoined, frame_bits, missing, spoke, datagram, sent, sent_n)
+        act = self.auth.pack(wire.ACT, self.i, wire.WORLD, b, t, wire.pack_report(report))
+        self.last_act = ((b, t), act)
+        self.out.send(act, self.world)
+        return newer
+
+    def _messages(self, b: int, t: int, heard, arrived: float):
+        """The inbox my actor reads at step ``t`` of episode ``b``: the messages of step
+        ``t - 1`` rebuilt (``core.receive``) from my row of each sender's frame, waiting for the
+        senders the observation's ``heard`` map promises (every sender without a map) until
+        ``Deadlines.message`` after the observation ``arrived`` (monotonic seconds); zeros at
+        step 0 or on a channel that does not speak.
+
+        Returns:
+          ``(msgs, missing, newer)``: the inbox, the number of promised frames still missing
+          at the deadline (losses), and what :meth:`_gather` stopped for (a newer observation,
+          ``"bye"``, or ``None``).
+        """
+        newer = None
+        missing = 0
+        if t == 0 or not self.cfg.speaks:  # nothing heard yet, or nothing ever sent
+            msgs = np.zeros(self.inbox_size, np.float32)
+        else:
+            if heard is None:  # no map: wait for every sender; one not heard is a loss
+                self.counts["no_map"] += 1
+                expect = np.ones(self.k - 1, bool)
+            else:
+                expect = heard
+            until = arrived + self.args.deadlines.message
+            got, newer = self._gather(b, t - 1, until, expect)
+            silent = ~expect  # the map says: nothing was sent
+            ok = np.array([g is not None for g in got], bool) | silent
+            missing = int((~ok).sum())
+            message = self._message_buffer()
+            for r, g in enumerate(got):
+                if g is not None:
+                    message[r] = g
+            msgs, self.last = self.receive_fn(self.chan[b], t - 1, message, ok, silent, self.last)
+        return msgs, missing, newer
+
+    def _send_frame(self, b: int, t: int, symbols, signal, spoke: np.ndarray):
+        """Send my frame of step ``t`` of episode ``b`` (``channel.encode_sender`` of my links'
+        ``symbols`` and ``signal``), one copy to each recipient whose link ``spoke``, through
+        the fault layer (``faults.inject``); nothing when no link speaks.
+
+        Returns:
+          ``(frame_bits, datagram, sent, sent_n)``: the frame's bits (0: none), and per
+          recipient slot the bytes of the datagram due (0: none) and the bytes and datagrams
+          the fault layer sent for it.
+        """
         n = self.k - 1
         datagram, sent, sent_n = [0] * n, [0] * n, [0] * n
         frame_bits = 0
@@ -404,10 +435,17 @@ class Agent:
                 for delay, data in sends:
                     self.out.send(data, self.peers[j], delay)
                 datagram[r], sent[r], sent_n[r] = len(dg), sum(len(d) for _, d in sends), len(sends)
-        self.sent_prev = symbols
+        return frame_bits, datagram, sent, sent_n
+
+    def _report(self, out, rejoined, frame_bits, missing, spoke, datagram, sent, sent_n):
+        """This step's :class:`wire.Report` for the world: the action of the actor's ``out``
+        and what I sent (the simulation's wire bits, the frame's, per link payload bits,
+        ``spoke``, ``datagram``, ``sent``, ``sent_n``) and heard (``missing`` frames, and the
+        datagrams counted since the last report, each count capped at 2**32 - 1; they then
+        start again from 0)."""
         counts = {name: min(v, 2**32 - 1) for name, v in self.counts.items()}
         self.counts = dict.fromkeys(self.counts, 0)
-        report = wire.Report(
+        return wire.Report(
             action=int(out.action),
             rejoined=rejoined,
             sim_wire=round(float(out.wire)),
@@ -420,10 +458,6 @@ class Agent:
             sent=tuple(sent),
             sent_n=tuple(sent_n),
         )
-        act = self.auth.pack(wire.ACT, self.i, wire.WORLD, b, t, wire.pack_report(report))
-        self.last_act = ((b, t), act)
-        self.out.send(act, self.world)
-        return newer
 
     def _prune(self, episode: int, t: int) -> None:
         for key in [key for key in self.inbox if (key[0], key[1]) < (episode, t)]:

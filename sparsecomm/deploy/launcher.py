@@ -4,7 +4,7 @@ For each run index: export the team (weights only) into the output folder, make 
 secret (``wire.write_secret``, in a private temporary folder removed at the end: the processes
 get its path, never the secret on a command line), pick free UDP ports on ``Deploy.host``,
 start ``python -m sparsecomm.deploy.world`` and one ``python -m
-sparsecomm.deploy.agent`` per agent (each in its own session, so a Ctrl-C reaches the launcher
+sparsecomm.deploy.agent`` per agent (each in its own POSIX session, so a Ctrl-C reaches the launcher
 alone; each asks Linux for SIGTERM when its parent dies, ``wire.die_with_parent``), then
 supervise them:
 
@@ -32,12 +32,14 @@ import contextlib
 import dataclasses
 import shutil
 import signal
+import socket
 import subprocess
 import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -146,26 +148,95 @@ def play(
     deadlines = Deadlines() if deadlines is None else deadlines
     k = num_agents
     private = Path(tempfile.mkdtemp(prefix="sparsecomm-deploy-"))  # mode 0700, removed below
+    net = _open_network(host, k, private)
+    world_cmd, agent_cmd = _commands(
+        team, out, seed, episodes, net, faults, deadlines, on_drop=on_drop, greedy=greedy
+    )
+    plan = kill_plan(kill_seed, episodes, k, kills_per_episode, kill_window)
+    shutil.rmtree(out / "logs", ignore_errors=True)
+    procs = Processes(out / "logs")
+    (out / "episodes.jsonl").unlink(missing_ok=True)
+    start = time.monotonic()
+    max_restarts = kills_per_episode * episodes + 3 * k
+    watch = _Supervisor(procs, agent_cmd, net, plan, start, deadlines, max_restarts)
+    peer_did = None
+    # Ctrl-C and SIGTERM stop every process. SIGINT is set here too, not left to Python: a
+    # launcher started in the background of a script inherits SIGINT ignored, and Python then
+    # installs no handler of its own.
+    previous = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGTERM, signal.SIGINT)}
+    try:
+        world = procs.start("world", world_cmd)
+        watch.start_team(k)
+        targets = _targets(net)
+        watch.hostile = None if peer is None else peer(targets)
+        watch.until_world_exits(world)
+        watch.wait_for_agents()
+    finally:
+        if watch.hostile is not None:
+            peer_did = watch.hostile.stop()
+        procs.close()
+        net.monitor.close()
+        shutil.rmtree(private, ignore_errors=True)
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return {
+        "episodes": read_episodes(out),
+        "kills": watch.kills,
+        "restarts": watch.restarts,
+        "wall_s": time.monotonic() - start,
+        "peer": peer_did,
+    }
+
+
+class _Network(NamedTuple):
+    """Where the processes of one deployment listen, and the secret their datagrams are sealed
+    with."""
+
+    secret: Path
+    """The team's secret file, in the launcher's private folder (``wire.write_secret``)."""
+    auth: wire.Auth
+    """Seals and checks datagrams under that secret."""
+    world: str
+    """The world's address, ``host:port``."""
+    agents: list[str]
+    """Each agent's address, ``host:port``, in id order."""
+    monitor: socket.socket
+    """The launcher's monitor socket, where the world reports its steps."""
+    monitor_addr: str
+    """Its address, ``host:port``."""
+
+
+def _open_network(host: str, num_agents: int, private: Path) -> _Network:
+    """A new deployment's :class:`_Network` on ``host``: the team's secret written into
+    ``private``, a free UDP port for the world and for each agent, and the monitor socket bound
+    to one more."""
     secret = wire.write_secret(private / "team.key")
     auth = wire.Auth(wire.read_secret(secret))
-    ports = wire.free_ports(host, k + 1)
+    ports = wire.free_ports(host, num_agents + 1)
     world_addr = f"{host}:{ports[0]}"
     agents = [f"{host}:{p}" for p in ports[1:]]
     monitor = wire.udp_socket((host, 0))
     monitor_addr = f"{host}:{monitor.getsockname()[1]}"
+    return _Network(secret, auth, world_addr, agents, monitor, monitor_addr)
+
+
+def _commands(team, out, seed, episodes, net: _Network, faults, deadlines, *, on_drop, greedy):
+    """The command lines of a deployment's processes: the world's, and a function of ``i`` that
+    gives agent ``i``'s (each ``python -m``, with the team, batch seed, episodes, compilation
+    cache under ``out`` and secret file in common)."""
     py = [sys.executable, "-m"]
     common = ["--team", str(team), "--seed", str(seed), "--episodes", str(episodes)]
-    common += ["--jax-cache", str(out / "jax_cache"), "--secret-file", str(secret)]
+    common += ["--jax-cache", str(out / "jax_cache"), "--secret-file", str(net.secret)]
     world_cmd = [
         *py,
         "sparsecomm.deploy.world",
         *common,
         "--agents",
-        *agents,
+        *net.agents,
         "--listen",
-        world_addr,
+        net.world,
         "--monitor",
-        monitor_addr,
+        net.monitor_addr,
         "--out",
         str(out),
         *_flags("deadlines", deadlines),
@@ -179,9 +250,9 @@ def play(
             "--agent",
             str(i),
             "--peers",
-            *agents,
+            *net.agents,
             "--world",
-            world_addr,
+            net.world,
             "--on-drop",
             on_drop,
             "--greedy" if greedy else "--no-greedy",
@@ -189,89 +260,117 @@ def play(
             *_flags("deadlines", deadlines),
         ]
 
-    plan = kill_plan(kill_seed, episodes, k, kills_per_episode, kill_window)
-    shutil.rmtree(out / "logs", ignore_errors=True)
-    procs = Processes(out / "logs")
-    (out / "episodes.jsonl").unlink(missing_ok=True)
-    start = time.monotonic()
-    kills, restarts = [], []
-    hostile = peer_did = None
-    # Ctrl-C and SIGTERM stop every process. SIGINT is set here too, not left to Python: a
-    # launcher started in the background of a script inherits SIGINT ignored, and Python then
-    # installs no handler of its own.
-    previous = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGTERM, signal.SIGINT)}
-    try:
-        world = procs.start("world", world_cmd)
-        team_procs = [procs.start("agent_0", agent_cmd(0))]
+    return world_cmd, agent_cmd
+
+
+def _targets(net: _Network) -> dict:
+    """What a hostile peer may forge datagrams to: ``{name: ((host, port), recipient id)}`` for
+    the world, each agent (``agent_<i>``) and the launcher's monitor."""
+    targets = {"world": (wire.parse_address(net.world), wire.WORLD)}
+    targets |= {f"agent_{i}": (wire.parse_address(a), i) for i, a in enumerate(net.agents)}
+    targets["launcher"] = (wire.parse_address(net.monitor_addr), wire.WORLD)
+    return targets
+
+
+class _Supervisor:
+    """The launcher's watch over one deployment's agent processes while the world plays.
+
+    It reads the world's steps on the monitor socket, lets the hostile peer (``hostile``) loose
+    at the first, kills agents as ``plan`` (:func:`kill_plan`) says, starts again at once an
+    agent that exits before the world is done (``max_restarts`` times in all, then the run
+    fails), and refuses a world that reports no step for ``Deadlines.startup +
+    Deadlines.action`` seconds. ``kills`` and ``restarts`` list what happened (restarts timed
+    in seconds from ``start``, monotonic).
+    """
+
+    def __init__(
+        self,
+        procs: Processes,
+        agent_cmd,
+        net: _Network,
+        plan: dict,
+        start: float,
+        deadlines: Deadlines,
+        max_restarts: int,
+    ):
+        self.procs, self.agent_cmd, self.net, self.plan = procs, agent_cmd, net, plan
+        self.start, self.deadlines, self.max_restarts = start, deadlines, max_restarts
+        self.team: list[subprocess.Popen] = []
+        self.hostile = None
+        self.kills: list[dict] = []
+        self.restarts: list[dict] = []
+
+    def start_team(self, num_agents: int) -> None:
+        """Start every agent process: agent 0 first, the others once it is ready (or
+        ``Deadlines.startup`` seconds passed)."""
+        self.team = [self.procs.start("agent_0", self.agent_cmd(0))]
         # The others start once agent 0 has compiled: they then load its programs from the
         # shared compilation cache instead of compiling them again on the same cores.
-        procs.wait_ready("agent_0", team_procs[0], deadlines.startup)
-        team_procs += [procs.start(f"agent_{i}", agent_cmd(i)) for i in range(1, k)]
-        targets = {"world": (wire.parse_address(world_addr), wire.WORLD)}
-        targets |= {f"agent_{i}": (wire.parse_address(a), i) for i, a in enumerate(agents)}
-        targets["launcher"] = (wire.parse_address(monitor_addr), wire.WORLD)
-        hostile = None if peer is None else peer(targets)
-        max_restarts = kills_per_episode * episodes + 3 * k
-        stall = deadlines.startup + deadlines.action
-        progress = time.monotonic()
-        done = False  # the world said it played every episode
-        last_step = (-1, -1)  # the latest (episode, step) the world reported
-        let_loose = False
+        self.procs.wait_ready("agent_0", self.team[0], self.deadlines.startup)
+        self.team += [
+            self.procs.start(f"agent_{i}", self.agent_cmd(i)) for i in range(1, num_agents)
+        ]
+
+    def until_world_exits(self, world: subprocess.Popen) -> None:
+        """Supervise until the world exits; ``RunError`` (with a log's tail) when an agent
+        keeps dying, the world stalls, or it exits with an error."""
+        self.progress = time.monotonic()
+        self.done = False  # the world said it played every episode
+        self.last_step = (-1, -1)  # the latest (episode, step) the world reported
+        self.let_loose = False
+        stall = self.deadlines.startup + self.deadlines.action
         while world.poll() is None:
-            # Every datagram waiting (a flood must not hold the world's step or done behind it),
-            # the first one waited for up to 50 ms.
-            for dg in _monitor_datagrams(monitor, auth):
-                done |= dg.kind == wire.DONE
-                # Progress is a step later than the last one seen: a replayed (sealed, real)
-                # step datagram must not hide a stalled world, nor trigger a kill twice.
-                if dg.kind != wire.STEP or (dg.episode, dg.step) <= last_step:
-                    continue
-                progress, last_step = time.monotonic(), (dg.episode, dg.step)
-                if hostile is not None and not let_loose:  # the team plays: let the peer loose
-                    hostile.go()
-                    let_loose = True
-                for step, agent in plan.get(dg.episode, []):
-                    if step == dg.step and team_procs[agent].poll() is None:
-                        team_procs[agent].kill()
-                        kills.append({"episode": dg.episode, "step": step, "agent": agent})
+            self._read_monitor()
             now = time.monotonic()
-            for i, p in enumerate(team_procs):  # an exit before the world is done: restart
-                if p.poll() is not None and not done and world.poll() is None:
-                    if len(restarts) >= max_restarts:
-                        raise RunError(
-                            f"agent {i} keeps dying ({len(restarts)} restarts); its log:\n"
-                            + procs.tail(f"agent_{i}")
-                        )
-                    restarts.append({"agent": i, "exit": p.returncode, "at_s": now - start})
-                    team_procs[i] = procs.start(f"agent_{i}", agent_cmd(i))
-            if now - progress > stall:
+            self._restart_exited(world, now)
+            if now - self.progress > stall:
                 raise RunError(
                     f"the world reported no step for {stall:.0f} s (Deadlines.startup + "
-                    "Deadlines.action); its log:\n" + procs.tail("world")
+                    "Deadlines.action); its log:\n" + self.procs.tail("world")
                 )
         if world.returncode != 0:
             raise RunError(
-                f"the world exited with {world.returncode}; its log:\n" + procs.tail("world")
+                f"the world exited with {world.returncode}; its log:\n" + self.procs.tail("world")
             )
+
+    def _read_monitor(self) -> None:
+        """Every datagram waiting on the monitor socket (a flood must not hold the world's step
+        or done behind it; the first waited for up to 50 ms): note ``done`` and each new step,
+        let the peer loose at the first, and kill the agents ``plan`` schedules at that step."""
+        for dg in _monitor_datagrams(self.net.monitor, self.net.auth):
+            self.done |= dg.kind == wire.DONE
+            # Progress is a step later than the last one seen: a replayed (sealed, real)
+            # step datagram must not hide a stalled world, nor trigger a kill twice.
+            if dg.kind != wire.STEP or (dg.episode, dg.step) <= self.last_step:
+                continue
+            self.progress, self.last_step = time.monotonic(), (dg.episode, dg.step)
+            if self.hostile is not None and not self.let_loose:  # the team plays: let it loose
+                self.hostile.go()
+                self.let_loose = True
+            for step, agent in self.plan.get(dg.episode, []):
+                if step == dg.step and self.team[agent].poll() is None:
+                    self.team[agent].kill()
+                    self.kills.append({"episode": dg.episode, "step": step, "agent": agent})
+
+    def _restart_exited(self, world: subprocess.Popen, now: float) -> None:
+        """Start again every agent process that exited, whatever its exit code, while the world
+        still plays and has not said it is done (``now``: the time of the check, monotonic)."""
+        for i, p in enumerate(self.team):  # an exit before the world is done: restart
+            if p.poll() is not None and not self.done and world.poll() is None:
+                if len(self.restarts) >= self.max_restarts:
+                    raise RunError(
+                        f"agent {i} keeps dying ({len(self.restarts)} restarts); its log:\n"
+                        + self.procs.tail(f"agent_{i}")
+                    )
+                self.restarts.append({"agent": i, "exit": p.returncode, "at_s": now - self.start})
+                self.team[i] = self.procs.start(f"agent_{i}", self.agent_cmd(i))
+
+    def wait_for_agents(self) -> None:
+        """Give the agents, told bye by the world, 5 s in all to exit."""
         until = time.monotonic() + 5.0  # the agents were told bye
-        for p in team_procs:
+        for p in self.team:
             with contextlib.suppress(subprocess.TimeoutExpired):
                 p.wait(max(until - time.monotonic(), 0.01))
-    finally:
-        if hostile is not None:
-            peer_did = hostile.stop()
-        procs.close()
-        monitor.close()
-        shutil.rmtree(private, ignore_errors=True)
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    return {
-        "episodes": read_episodes(out),
-        "kills": kills,
-        "restarts": restarts,
-        "wall_s": time.monotonic() - start,
-        "peer": peer_did,
-    }
 
 
 def _monitor_datagrams(monitor, auth: wire.Auth, most: int = 4096) -> list[wire.Datagram]:
@@ -383,29 +482,15 @@ def deploy(args) -> dict:
 
 
 def _deploy(args) -> dict:
+    """:func:`deploy` without its Ctrl-C handling: every run of ``Deploy.index`` exported,
+    played and printed, then the report, per run and per (lambda, budget) group, written."""
     import jax
 
     from sparsecomm import runfolder
     from sparsecomm.channel import NoiseConfig
-    from sparsecomm.deploy.core import check_deployable, with_channel
-    from sparsecomm.errors import CheckpointError
+    from sparsecomm.deploy.core import with_channel
 
-    source = runfolder.PRETRAINED if args.run is None else Path(args.run)
-    out = args.out or (Path("runs/pretrained") if args.run is None else source) / "deploy"
-    try:
-        runs = runfolder.runs_of(source)
-    except (OSError, KeyError, TypeError, ValueError, CheckpointError) as e:
-        raise RunError(f"Deploy.run must be a run folder or an exported team: {e}") from None
-    for r in args.index:
-        if not 0 <= r < len(runs):
-            raise RunError(
-                f"Deploy.index must be in [0, {len(runs) - 1}] (the runs of {source}), got {r}"
-            )
-    config, env, team_net, runs, actor = runfolder.load_actors(source)
-    try:
-        check_deployable(config)
-    except ValueError as e:
-        raise RunError(str(e)) from None
+    source, out, config, env, team_net, runs, actor = _load_source(args)
     k = config.env.num_agents
     faults, deadlines = args.faults(), args.deadlines()
     results = []
@@ -422,66 +507,11 @@ def _deploy(args) -> dict:
             simulated = Background(
                 reference, env, team_net, channel, params, seed, args.episodes, args.greedy
             )
-        try:
-            played = play(
-                team,
-                out / f"run_{r}",
-                seed,
-                args.episodes,
-                k,
-                host=args.host,
-                faults=faults,
-                deadlines=deadlines,
-                on_drop=args.on_drop,
-                greedy=args.greedy,
-                kills_per_episode=args.kills_per_episode,
-                kill_window=args.kill_window,
-                kill_seed=args.fault_seed,
-                peer=_peer(args, env),
-            )
-        except BaseException:
-            # An interpreter that exits while XLA runs in another thread dies of SIGABRT: let
-            # the simulation finish first, so that the exit status is the error's.
-            if simulated is not None:
-                simulated.thread.join()
-            raise
-        means, cis = summarize(played["episodes"])
-        row = {
-            "index": r,
-            **runs[r]._asdict(),
-            "seed_key": seed,
-            "episodes": len(played["episodes"]),
-            **means,
-            "ci": cis,
-            "kills": len(played["kills"]),
-            "restarts": len(played["restarts"]),
-            "wall_clock_s": played["wall_s"],
-        }
-        if played["peer"] is not None:
-            row["forgeries_sent"] = played["peer"]
-        if simulated is not None:
-            row["simulation"] = compare(played["episodes"], simulated.result())
+        played = _play_run(args, team, out / f"run_{r}", seed, k, faults, deadlines, env, simulated)
+        row = _run_row(r, runs[r], seed, played, simulated)
         results.append(row)
         _print_row(row)
-    by_group = {}
-    for group in dict.fromkeys(runs[r].group for r in args.index):
-        rows = [row for row in results if runs[row["index"]].group == group]
-        by_group[group] = {
-            name: dict(
-                zip(
-                    ("mean", "ci_low", "ci_high"),
-                    bootstrap_ci([row[name] for row in rows]),
-                    strict=True,
-                )
-            )
-            for name in (
-                *CI_METRICS,
-                "frame_bits_per_step",
-                "datagram_bits_per_step",
-                "datagrams_per_step",
-                "missing_messages_per_step",
-            )
-        }
+    by_group = _by_group(results, runs, args.index)
     report = {
         "episodes_per_run": args.episodes,
         "greedy": args.greedy,
@@ -501,6 +531,111 @@ def _deploy(args) -> dict:
     return report
 
 
+def _load_source(args):
+    """The run folder or exported team ``Deploy.run`` names (default: the pretrained team),
+    the output folder (``Deploy.out``, default ``<source>/deploy``) and what
+    ``runfolder.load_actors`` reads of it; ``RunError`` when it is neither, when an index of
+    ``Deploy.index`` is not one of its runs, or when its channel cannot be deployed."""
+    from sparsecomm import runfolder
+    from sparsecomm.deploy.core import check_deployable
+    from sparsecomm.errors import CheckpointError
+
+    source = runfolder.PRETRAINED if args.run is None else Path(args.run)
+    out = args.out or (Path("runs/pretrained") if args.run is None else source) / "deploy"
+    try:
+        runs = runfolder.runs_of(source)
+    except (OSError, KeyError, TypeError, ValueError, CheckpointError) as e:
+        raise RunError(f"Deploy.run must be a run folder or an exported team: {e}") from None
+    for r in args.index:
+        if not 0 <= r < len(runs):
+            raise RunError(
+                f"Deploy.index must be in [0, {len(runs) - 1}] (the runs of {source}), got {r}"
+            )
+    config, env, team_net, runs, actor = runfolder.load_actors(source)
+    try:
+        check_deployable(config)
+    except ValueError as e:
+        raise RunError(str(e)) from None
+    return source, out, config, env, team_net, runs, actor
+
+
+def _play_run(args, team, out, seed, k, faults, deadlines, env, simulated) -> dict:
+    """:func:`play` of one exported run with ``Deploy``'s settings (``args``). On any exception
+    the simulation playing beside it (``simulated``, or None) is let finish first: an
+    interpreter that exits while XLA runs in another thread dies of SIGABRT, and the exit
+    status must be the error's."""
+    try:
+        return play(
+            team,
+            out,
+            seed,
+            args.episodes,
+            k,
+            host=args.host,
+            faults=faults,
+            deadlines=deadlines,
+            on_drop=args.on_drop,
+            greedy=args.greedy,
+            kills_per_episode=args.kills_per_episode,
+            kill_window=args.kill_window,
+            kill_seed=args.fault_seed,
+            peer=_peer(args, env),
+        )
+    except BaseException:
+        if simulated is not None:
+            simulated.thread.join()
+        raise
+
+
+def _run_row(r: int, run, seed: int, played: dict, simulated) -> dict:
+    """The report's row of run ``r`` (``run``: its entry of the run folder): eval's metrics
+    over the episodes ``played`` with their 95% CIs, kills, restarts and wall-clock seconds,
+    the forged datagrams of a hostile peer, and beside the simulation of the same episodes
+    (:func:`compare`; ``simulated``: its :class:`Background`, or None)."""
+    means, cis = summarize(played["episodes"])
+    row = {
+        "index": r,
+        **run._asdict(),
+        "seed_key": seed,
+        "episodes": len(played["episodes"]),
+        **means,
+        "ci": cis,
+        "kills": len(played["kills"]),
+        "restarts": len(played["restarts"]),
+        "wall_clock_s": played["wall_s"],
+    }
+    if played["peer"] is not None:
+        row["forgeries_sent"] = played["peer"]
+    if simulated is not None:
+        row["simulation"] = compare(played["episodes"], simulated.result())
+    return row
+
+
+def _by_group(results: list[dict], runs, index) -> dict:
+    """Each (lambda, budget) group's mean and 95% bootstrap CI over its deployed runs (the
+    ``results`` rows), of eval's CI metrics and the network's, in the order of ``index``."""
+    by_group = {}
+    for group in dict.fromkeys(runs[r].group for r in index):
+        rows = [row for row in results if runs[row["index"]].group == group]
+        by_group[group] = {
+            name: dict(
+                zip(
+                    ("mean", "ci_low", "ci_high"),
+                    bootstrap_ci([row[name] for row in rows]),
+                    strict=True,
+                )
+            )
+            for name in (
+                *CI_METRICS,
+                "frame_bits_per_step",
+                "datagram_bits_per_step",
+                "datagrams_per_step",
+                "missing_messages_per_step",
+            )
+        }
+    return by_group
+
+
 def _peer(args, env):
     """The hostile peer of ``Deploy.forgeries_per_second`` (``None``: none)."""
     if not args.forgeries_per_second > 0:
@@ -512,7 +647,7 @@ def _peer(args, env):
             targets,
             num_agents=env.num_agents,
             episodes=args.episodes,
-            steps=env.config.max_steps,
+            steps=env.max_steps,
             obs_dim=env.obs_dim,
             rate=args.forgeries_per_second,
             seed=args.fault_seed,
