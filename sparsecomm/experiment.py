@@ -61,7 +61,9 @@ delay in whole centiseconds, and browsers show a delay under 2 cs (0 or 1: more 
 @dataclasses.dataclass
 class Train:
     """Train teams by actor-critic RL through the channel; a sweep of lambdas x budgets x seeds.
-    ``sparsecomm train --preset small`` starts from a named preset (``configs.PRESETS``)."""
+    ``sparsecomm train --preset small`` starts from a named preset (``configs.PRESETS``),
+    ``--task NAME`` from a registered task's defaults (``envs.registry``: ``navigation``,
+    ``simple_reference`` and the tasks of the modules in ``SPARSECOMM_TASKS``)."""
 
     config: RLConfig = RLConfig()
     """The learner."""
