@@ -161,6 +161,13 @@ def test_registry_names_makes_and_refuses():
         registry.register("toy2", Toy, ToyConfig)
     with pytest.raises(TypeError, match="TaskConfig"):
         registry.register("plain", Toy, dict)
+
+    @dataclasses.dataclass(frozen=True)
+    class Headless(TaskConfig):
+        size: int = 1
+
+    with pytest.raises(TypeError, match="must expose num_agents"):
+        registry.register("headless", Toy, Headless)
     with pytest.raises(ValueError, match=r"registered tasks \[.*'navigation'.*\], got 'nope'"):
         registry.spec("nope")
 

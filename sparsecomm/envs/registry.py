@@ -62,6 +62,8 @@ def register(name: str, env: Callable, config: type) -> TaskSpec:
         raise TypeError(f"task {name!r}: its config must subclass envs.task.TaskConfig")
     if not dataclasses.is_dataclass(config) or not config.__dataclass_params__.frozen:
         raise TypeError(f"task {name!r}: its config {config.__name__} must be a frozen dataclass")
+    if not hasattr(config, "num_agents") and "num_agents" not in config.__dataclass_fields__:
+        raise TypeError(f"task {name!r}: its config {config.__name__} must expose num_agents")
     spec = TaskSpec(name, env, config)
     old = _TASKS.get(name)
     if old is not None and old != spec:

@@ -44,11 +44,8 @@ import numpy as np
 @dataclasses.dataclass(frozen=True)
 class TaskConfig:
     """The base of every task's config: a frozen dataclass of documented fields that exposes
-    ``num_agents``. ``LearnerConfig.env`` holds one; its class names the task in the registry."""
-
-    @property
-    def num_agents(self) -> int:  # a task's config overrides it (a field or a property)
-        raise NotImplementedError(f"{type(self).__name__} must define num_agents")
+    ``num_agents`` (a field or a property; ``envs.registry.register`` refuses a config without
+    it). ``LearnerConfig.env`` holds one; its class names the task in the registry."""
 
 
 @runtime_checkable
