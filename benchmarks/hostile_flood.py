@@ -1,4 +1,4 @@
-"""A deployed team under a flood of forged datagrams (issue 33): crashes, accepted forgeries,
+"""A deployed team under a flood of forged datagrams (docs/deploy.md): crashes, accepted forgeries,
 hangs.
 
 Deploys a team (default: the one shipped with the package) with a hostile peer that does not

@@ -1,4 +1,4 @@
-"""sparsecomm's training update against a naive JAX step, side by side in one run (issue 21).
+"""sparsecomm's training update against a naive JAX step, side by side in one run.
 
 The reference is what a user would write first: the same navigation task and the same actor
 network (``sparsecomm.agents.Actor``, shared parameters with a one-hot agent id, GRU 64), the

@@ -1,4 +1,4 @@
-"""Success and bits of trained teams under channel noise (issue 18, docs/noise.md).
+"""Success and bits of trained teams under channel noise (docs/noise.md).
 
 Evaluates every run of each run folder under each noise setting (``sparsecomm.channel.noise``:
 packet erasure, symmetric bit flips, which make a packet fail its CRC-32, Gilbert-Elliott

@@ -115,8 +115,8 @@ def _kept(folder: Path, seeds: tuple[int, ...]) -> tuple[dict, list[int]]:
 
 def learning_row(folder: Path, seeds: tuple[int, ...] = ()) -> dict:
     """One arm of the many-agent task as a row of ``learning.json``: the mean over its seeds of
-    the final evaluation, with a BCa 95% CI over seeds; ``env_steps`` per seed. Beyond the
-    issue's fields: ``lam``, ``budget`` (the payload budget in bits per step, ``null`` for none),
+    the final evaluation, with a BCa 95% CI over seeds; ``env_steps`` per seed. Beyond
+    success, length and bits: ``lam``, ``budget`` (payload bits per step, ``null`` for none),
     ``budget_per_link`` (whether ``budget`` counts per link rather than for the team) and
     ``speaking`` (the fraction of existing links that sent, per step), ``engage_success`` (the
     batch success at which the budget's controller engages, ``null`` without one),

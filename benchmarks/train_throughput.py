@@ -58,7 +58,7 @@ class Args:
     (``sparsecomm.budget``); None: the fixed lambda 0."""
     share_params: bool = True
     """One set of actor parameters for all agents (the default learner); ``--no-share-params``
-    for separate ones (the paper's, and the default before issue 14)."""
+    for separate ones (the paper's)."""
     goal_view: str = "others"
     """Who sees whose goal (``NavConfig.goal_view``): ``others`` (paper) or ``ring``."""
     neighbours: int | None = None
@@ -70,7 +70,7 @@ class Args:
     live_links_only: bool = True
     """With ``neighbours`` and a ``mean`` / ``attention`` inbox, compute only the live links
     (``AgentConfig.live_links_only``); ``--no-live-links-only``: all K (K - 1), masked (the
-    code before issue 34)."""
+    former computation)."""
     sharded: bool = False
     """Train mode: split the seeds and episodes over all local devices as ``run_sweep`` does
     (``sparsecomm.sharding``); otherwise everything runs on the default device."""

@@ -80,7 +80,7 @@ GRID = {
     "advnorm_gae95": dict(normalize_advantages=True, gae_lambda=0.95),
     "advnorm_ent03": dict(normalize_advantages=True, ent_coef=0.03),
     "advnorm_gae95_ent03": dict(normalize_advantages=True, gae_lambda=0.95, ent_coef=0.03),
-    # issue 32, shared actor parameters (the default since docs/rl.md), tuning seeds 1000-1001
+    # the paper task, shared actor parameters (the default since docs/rl.md), tuning seeds 1000-1001
     "i32_b256": dict(seed=1000),
     "i32_b64": dict(seed=1000, num_envs=64),
     "i32_b32": dict(seed=1000, num_envs=32),

@@ -173,7 +173,7 @@ def test_the_paper_preset_is_the_fast_learner_on_the_paper_task():
     assert cfg.env == RLConfig().env and cfg.algo == "a2c" and cfg.num_updates == 9
     assert (cfg.num_envs, cfg.lr, cfg.lr_final, cfg.lr_decay_steps) == (32, 1e-3, 1e-4, 1000)
     assert str(cmd.out) == "runs/paper"
-    il = parse(["imitate", "--preset", "paper"]).config  # docs/budget.md's controller v6 runs
+    il = parse(["imitate", "--preset", "paper"]).config  # docs/budget.md's bounded relief
     assert il.env == ILConfig().env and il.agent.message_gate == "hard" and il.num_envs == 32
     assert (il.num_updates, il.budget.halving_updates, il.budget.relief_floor) == (1000, 40, 0.1)
     fast = parse(["train", "--preset", "paper_fast"]).config  # docs/paper-task.md's race

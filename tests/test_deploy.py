@@ -1,4 +1,4 @@
-"""Decentralised execution (issue 19): the datagram format, the fault layer, the config checks,
+"""Decentralised execution: the datagram format, the fault layer, the config checks,
 and real deployments: a world process and one process per agent over UDP on loopback."""
 
 import dataclasses

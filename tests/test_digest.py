@@ -1,4 +1,4 @@
-"""Results unchanged (issue 21): three RL updates reproduce their recorded parameters.
+"""Results unchanged: three RL updates reproduce their recorded parameters.
 
 On the machine the record was made on (same CPU model, usable cores, jax and jaxlib) the
 parameters must be the recorded ones bit for bit. Elsewhere XLA's CPU kernels may round

@@ -1,4 +1,4 @@
-"""The fitted code (issue 17 item 2): exact round trips, wire bits equal to the packets, bits
+"""The fitted code: exact round trips, wire bits equal to the packets, bits
 near the entropy of a known source, clean errors for any bytes, and its use in a rollout."""
 
 import dataclasses
@@ -210,7 +210,7 @@ def test_fit_code_command_writes_a_code_the_channel_accepts(tmp_path, fast_compi
         main(["fit-code", "--run", str(PRETRAINED), "--episodes", "0"])
 
 
-# -- a learned code (issue 17 item 3): the paper's code with symbols ranked by frequency -----
+# -- a learned code: the paper's code with symbols ranked by frequency -----
 
 
 def test_frequency_remap_gives_the_most_frequent_symbols_the_shortest_codewords():

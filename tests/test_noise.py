@@ -354,7 +354,7 @@ def test_eval_command_can_evaluate_a_team_under_other_noise(tmp_path, fast_compi
     assert "packets_lost_per_step" not in json.loads(out.read_text())["by_group"]["budget=16/0"]
 
 
-# -- error correction (issue 18 item 4) ------------------------------------------------------
+# -- error correction ------------------------------------------------------------------------
 
 
 def test_hamming_corrects_one_flip_per_block_and_counts_its_bits():

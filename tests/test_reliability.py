@@ -1,4 +1,4 @@
-"""Nothing lost, nothing silent (issue 16): bad input refused before any work with the field's
+"""Nothing lost, nothing silent: bad input refused before any work with the field's
 name and exit code 2, divergence stops a run with exit code 3, checkpoints that cannot lie, and
 logs that hold each update once across kills and resumes."""
 
