@@ -30,6 +30,7 @@ from flax import serialization
 
 from sparsecomm import checkpoint
 from sparsecomm.configs import ILConfig, RLConfig, from_dict, to_dict
+from sparsecomm.envs import registry
 from sparsecomm.envs.task import Task
 from sparsecomm.errors import CheckpointError, RunError
 from sparsecomm.imitation import make_imitate, oracle_expert, team_expert
@@ -157,7 +158,7 @@ def load_expert(config: ILConfig) -> Expert:
     """The expert ``config`` names: the oracle, or run ``expert_index`` of the RL run folder (or
     exported team) ``expert_checkpoint``, acting greedily over its own channel."""
     if config.expert == "oracle":
-        return oracle_expert(make_team(config)[0])
+        return oracle_expert(registry.make(config.env))
     rl_config, trainer, runs, actor = load_run(Path(config.expert_checkpoint))
     if rl_config.env != config.env:
         raise RunError(
