@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 
 from sparsecomm.channel import gate
+from sparsecomm.channel.team import TeamChannel
 from sparsecomm.configs import AgentConfig
 from sparsecomm.scaling import AttentionPool, check_fits, inbox_features
 
@@ -103,39 +104,35 @@ class Team:
         num_agents: int,
         obs_dim: int,
         num_actions: int,
-        num_elements: int,
+        links: TeamChannel,
         state_dim: int,
-        gate_elements: int = 0,
-        news_inputs: bool = False,
     ):
-        """``num_elements``: C, the message elements of each link; ``gate_elements``: the
-        link's gate the head emits beside them (``ChannelConfig.link_gate``); ``news_inputs``:
-        each receiver also reads, per link, whether its message is news
-        (``ChannelConfig.on_silence = "hold"``; the ``concat`` inbox only), and with
-        ``AgentConfig.reads_sent`` each sender the last message each of its links delivered."""
+        """``links``: the team's channel (``channel.build``): each link's C message
+        elements and the gate the head emits beside them (``links.signal_elements``), and the
+        width of the inbox each actor reads (``links.inbox_width``: every link's message,
+        news flags under ``on_silence = "hold"``, and with ``AgentConfig.reads_sent`` what the
+        agent's own links last delivered)."""
         check_fits(cfg, num_agents)
-        if news_inputs and cfg.aggregate != "concat":
+        if links.news_inputs and cfg.aggregate != "concat":
             raise ValueError(
                 "ChannelConfig.on_silence 'hold' needs AgentConfig.aggregate 'concat', got "
                 f"{cfg.aggregate!r}"
             )
-        if cfg.reads_sent and not news_inputs:
-            raise ValueError(
-                "AgentConfig.reads_sent needs ChannelConfig.on_silence 'hold' (a held message "
-                "to read back), got on_silence 'null'"
-            )
+        if cfg.reads_sent != links.reads_sent:
+            raise ValueError("the team's channel must be built with AgentConfig.reads_sent")
+        num_elements = links.cfg.num_elements
         self.cfg = cfg
         self.num_agents = num_agents
         self.num_actions = num_actions
         self.num_elements = num_elements
-        self.news_inputs = news_inputs
+        self.links = links
+        """The team's own channel (``channel.build``)."""
         self.reads_sent = cfg.reads_sent
         """Each actor's inbox ends with the last message each of its own links delivered."""
         self.routed = cfg.neighbours is not None or cfg.radius is not None
         """Links follow the agents' positions (``sparsecomm.scaling.routing_mask``)."""
-        links_in = num_elements + news_inputs + num_elements * cfg.reads_sent
         inbox_sizes = {
-            "concat": (num_agents - 1) * links_in,  # every link's message, and its own links'
+            "concat": links.inbox_width(),  # every link's message, and its own links'
             "mean": num_elements + 1,  # their mean and the fraction of the team heard
             "attention": 1,  # the fraction heard; the attention's pool is added in the actor
         }
@@ -148,11 +145,11 @@ class Team:
             cfg.gru,
             num_actions,
             num_agents - 1,
-            num_elements + gate_elements,
+            links.signal_elements,
             cfg.message_bias_init,
             cfg.message_gate,
             cfg.aggregate == "attention",
-            cfg.gate_bias_init if gate_elements else None,
+            cfg.gate_bias_init if links.gated else None,
         )
         self.critic = Critic(cfg.critic_hidden, num_agents)
 

@@ -204,12 +204,9 @@ class LearnerConfig:
                 self.lr_decay_steps >= (0 if self.lr_final is None else 1),
                 ">= 1 when lr_final is set, else >= 0",
             ),
-            "agent.reads_sent": (
-                not self.agent.reads_sent or self.channel.holds,
-                "False unless channel.on_silence is 'hold'",
-            ),
+            **self.channel.team_checks(self.agent.reads_sent, self.agent.aggregate),
             "budget.decoupled": (  # its penalty step reprices the head's gates, not the news'
-                not self.budget.decoupled or self.channel.news_margin is None,
+                not self.budget.decoupled or not self.channel.opens_on_news,
                 "False with channel.news_margin set",
             ),
         }

@@ -25,7 +25,7 @@ from sparsecomm.agents import Team
 from sparsecomm.configs import ILConfig
 from sparsecomm.envs.task import Task
 from sparsecomm.learner import Learner, LossAux, make_learner, make_team, masked_mean
-from sparsecomm.rollout import Expert, episode_metrics, exchange, keeps_delivered, rollout
+from sparsecomm.rollout import Expert, episode_metrics, rollout
 
 
 def oracle_expert(env: Task) -> Expert:
@@ -42,60 +42,32 @@ def oracle_expert(env: Task) -> Expert:
 def team_expert(team: Team, channel_cfg, actor_params) -> Expert:
     """A trained team as an :class:`Expert`: it talks among itself over its own channel (fresh
     dither keys, no noise on the wire), and only its actions leave it. Acts greedily. Its links
-    are the rollout's, step for step (:func:`sparsecomm.rollout.exchange`): a gated link that
-    falls silent leaves its recipient holding the last message (``ChannelConfig.holds``, read
-    with its news flags), news opens a gate (``news_margin``), and a team that ``reads_sent``
-    reads its own links back. A
-    team whose links follow positions or whose inbox is aggregated (``sparsecomm.scaling``) is
-    refused."""
+    are the rollout's, step for step: the same link rules and state
+    (``channel.build``, ``TeamChannel.exchange``). A team whose links follow positions or
+    whose inbox is aggregated (``sparsecomm.scaling``) is refused."""
     if team.routed or team.cfg.aggregate != "concat":
         raise ValueError(
             "a team expert must use AgentConfig.neighbours = radius = None and aggregate "
             "'concat' (its own all-to-all channel)"
         )
     k = team.num_agents
-    c = channel_cfg.num_elements
-    holds = channel_cfg.holds
-    keeps_sent = keeps_delivered(team, channel_cfg)
-    width = (k - 1) * (c + holds) + ((k - 1) * c if team.reads_sent else 0)
+    links = channel.build(channel_cfg, k, reads_sent=team.reads_sent, lossy=False)
 
     def init(batch):
-        keys = jax.random.split(jax.random.key(12345), batch)
-        links = jnp.zeros((batch, k, k - 1, c), jnp.float32)
         return dict(
             h=team.initial_carry(batch),
-            msgs=jnp.zeros((batch, k, width), jnp.float32),
-            keys=keys,
+            msgs=jnp.zeros((batch, k, links.inbox_width()), jnp.float32),
+            keys=jax.random.split(jax.random.key(12345), batch),
             t=jnp.zeros((), jnp.int32),
-            prev=jnp.zeros((batch, k, k - 1, c), jnp.int32),
-            last=links if holds else None,
-            sent=links if keeps_sent else None,
+            links=links.init((batch,)),
         )
 
     def step(carry, key, state, obs):
         keys, t = carry["keys"], carry["t"]
         h, logits, z = team.act(actor_params, carry["h"], obs, carry["msgs"])
         u = channel.step_dither(channel_cfg, keys, t, k)
-        ex = exchange(
-            channel_cfg,
-            team.reads_sent,
-            z,
-            u,
-            keys,
-            t,
-            carry["prev"],
-            last=carry["last"],
-            held=carry["sent"],
-        )
-        carry = dict(
-            h=h,
-            msgs=ex.msgs,
-            keys=keys,
-            t=t + 1,
-            prev=ex.sent.symbols,
-            last=ex.got.last,
-            sent=ex.own,
-        )
+        ex = links.exchange(carry["links"], z, u, keys, t)
+        carry = dict(h=h, msgs=ex.msgs, keys=keys, t=t + 1, links=ex.state)
         return carry, jnp.argmax(logits, -1)
 
     return Expert(init=init, step=step)

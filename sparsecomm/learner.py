@@ -28,6 +28,7 @@ import optax
 from flax import struct
 
 from sparsecomm import budget as bit_budget
+from sparsecomm import channel
 from sparsecomm.agents import Team
 from sparsecomm.configs import LearnerConfig
 from sparsecomm.envs import registry
@@ -120,16 +121,8 @@ def make_team(config: LearnerConfig) -> tuple[Task, Team]:
     is the registered one ``config.env`` configures (``sparsecomm.envs.registry.make``)."""
     env = registry.make(config.env)
     check_fits(config.agent, env.num_agents)
-    team = Team(
-        config.agent,
-        env.num_agents,
-        env.obs_dim,
-        env.num_actions,
-        config.channel.num_elements,
-        env.state_dim,
-        gate_elements=int(config.channel.link_gate),
-        news_inputs=config.channel.holds,
-    )
+    links = channel.build(config.channel, env.num_agents, reads_sent=config.agent.reads_sent)
+    team = Team(config.agent, env.num_agents, env.obs_dim, env.num_actions, links, env.state_dim)
     return env, team
 
 

@@ -3,10 +3,11 @@
 It serves reinforcement learning (the learners act), imitation (an expert acts, or the learners
 act and an expert labels: DAgger) and evaluation. The channel itself (routing, dither, the
 sender side ``transmit`` and the receiver side ``receive`` of every mode) is
-:mod:`sparsecomm.channel.links`, its noise :mod:`sparsecomm.channel.lossy`; this module is the
-scan over them, and :func:`exchange` one step of a team's links (the rollout's and a team
-expert's, ``imitation.team_expert``). Each
-batch element is one whole episode of ``env.max_steps`` steps; steps after the episode ended
+:mod:`sparsecomm.channel.links`, its link rules and their state the team's channel built once
+from its config (``channel.build``, :mod:`sparsecomm.channel.team`: one step of a team's
+links is its ``exchange``, the rollout's and a team expert's), its noise
+:mod:`sparsecomm.channel.lossy`; this module is the scan over them. Each batch element is one
+whole episode of ``env.max_steps`` steps; steps after the episode ended
 are computed but masked (``valid``).
 
 At step t every agent i reads its observation and the messages decoded at step t-1, and emits
@@ -39,6 +40,7 @@ from flax import struct
 from sparsecomm import channel, scaling
 from sparsecomm.agents import Team
 from sparsecomm.channel import ChannelConfig
+from sparsecomm.channel.team import LinkState, TeamChannel
 from sparsecomm.envs.task import Task
 from sparsecomm.sharding import split_episodes
 
@@ -98,11 +100,9 @@ class Carry(NamedTuple):
     msgs: jax.Array  # (B, K, (K-1) C) messages received, by recipient (``channel.deliver``)
     gru: jax.Array  # (B, K, H) the actors' GRU states
     expert: Any  # the expert's carry (None without an expert)
-    prev_symbols: jax.Array  # (B, K, K-1, C) int32 each link's symbols at the previous step
-    links: Any  # channel.lossy.LinkState of the noisy links (None on a clean channel)
-    last: Any  # (B, K, K-1, C) each link's last good message (None unless a rule reads it)
+    links: LinkState  # the team's links (``channel.team``: last symbols, held messages)
+    wire: Any  # channel.lossy.LinkState of the noisy wire (None on a clean channel)
     heard: Any  # (B, K, K-1) bool which links each recipient heard (None: all, the full team)
-    sent: Any  # (B, K, K-1, C) what each link last delivered, by sender (None: not read back)
 
 
 def rollout(
@@ -160,7 +160,7 @@ def rollout(
     plan = _Plan(
         team,
         env,
-        channel_cfg,
+        channel.build(channel_cfg, env.num_agents, reads_sent=team.reads_sent),
         actor_params,
         draws.chan_keys,
         draws.lossy,
@@ -168,7 +168,7 @@ def rollout(
         _link_rule(team, env, channel_cfg, draws.chan_keys, draws.num_envs, listed),
         {"env_states": keep_states, "hidden": keep_hidden, "symbols": keep_symbols},
     )
-    init = _first_carry(team, env, channel_cfg, draws, expert, listed, plan.route.masked)
+    init = _first_carry(team, env, plan.links, draws, expert, listed, plan.route.masked)
     step = functools.partial(_step, plan)
     if remat:
         step = jax.checkpoint(step)
@@ -184,7 +184,7 @@ class _Plan(NamedTuple):
 
     team: Team
     env: Task
-    channel_cfg: ChannelConfig
+    links: TeamChannel  # the channel's link rules (``channel.build``)
     actor_params: Any
     chan_keys: jax.Array  # (B,) each episode's channel key
     lossy: Any  # channel.lossy.LossyLinks of a noisy channel, else None
@@ -195,7 +195,7 @@ class _Plan(NamedTuple):
 
 def _step(plan: _Plan, carry: Carry, noise):
     """One step of every episode: act, talk, step, record."""
-    team, env, cfg, route = plan.team, plan.env, plan.channel_cfg, plan.route
+    team, env, cfg, route = plan.team, plan.env, plan.links.cfg, plan.route
     t, state = noise["t"], carry.env_state
     # act: the actors read their observations and last step's messages
     gru, logits, z = team.act(plan.actor_params, carry.gru, carry.obs, carry.msgs, carry.heard)
@@ -203,22 +203,11 @@ def _step(plan: _Plan, carry: Carry, noise):
     acts, labels, expert_carry = plan.choose(logits, log_probs, noise, carry.expert, state, carry)
     # talk: this step's links, the sender side, the wire, the receiver side, the inboxes
     z, u, live, senders = route.links(state, z, t, noise)
-    wire = None if plan.lossy is None else _noisy_wire(plan.lossy, noise["loss"], u, carry.links)
-    ex = exchange(
-        cfg,
-        team.reads_sent,
-        z,
-        u,
-        plan.chan_keys,
-        t,
-        carry.prev_symbols,
-        last=carry.last,
-        held=carry.sent,
-        live=live,
-        senders=senders,
-        wire=wire,
+    wire = None if plan.lossy is None else _noisy_wire(plan.lossy, noise["loss"], u, carry.wire)
+    ex = plan.links.exchange(
+        carry.links, z, u, plan.chan_keys, t, live=live, senders=senders, wire=wire
     )
-    links, lost = (carry.links, None) if plan.lossy is None else ex.wire
+    wire_state, lost = (carry.wire, None) if plan.lossy is None else ex.wire
     # step: the world moves
     valid = ~state.done
     global_state = jax.vmap(env.global_state)(state)
@@ -246,11 +235,9 @@ def _step(plan: _Plan, carry: Carry, noise):
         msgs=ex.msgs,
         gru=gru,
         expert=expert_carry,
-        prev_symbols=ex.sent.symbols,
-        links=links,
-        last=ex.got.last,
+        links=ex.state,
+        wire=wire_state,
         heard=route.heard(live),
-        sent=ex.own,
     )
     return carry, (record, (ex.z, live) if cfg.prices_later else None)
 
@@ -296,29 +283,20 @@ def _draws(team, env, channel_cfg, key, num_envs, episodes, actions, expert, lis
     return _Draws(num_envs, reset_keys, split_episodes(chan_keys, axis=0), noise, lossy)
 
 
-def _first_carry(team, env, channel_cfg, draws: _Draws, expert, listed: bool, masked: bool):
+def _first_carry(team, env, links: TeamChannel, draws: _Draws, expert, listed: bool, masked):
     """The scan's first :class:`Carry`: the episodes reset, empty inboxes and link states."""
-    k, c, num_envs = env.num_agents, channel_cfg.num_elements, draws.num_envs
+    k, num_envs = env.num_agents, draws.num_envs
     obs, state = jax.vmap(env.reset)(draws.reset_keys)
     heard_links = team.cfg.neighbours if listed else k - 1  # links each recipient is listed
-    sent_in = (k - 1) * c if team.reads_sent else 0  # what the agent's own links last delivered
-    keeps_last = channel_cfg.holds or (
-        draws.lossy is not None and channel_cfg.noise.on_drop == "last"
-    )
-    width = heard_links * (c + channel_cfg.holds) + sent_in
     init = Carry(
         env_state=state,
         obs=obs,
-        msgs=jnp.zeros((num_envs, k, width), jnp.float32),
+        msgs=jnp.zeros((num_envs, k, links.inbox_width(heard_links)), jnp.float32),
         gru=team.initial_carry(num_envs),
         expert=expert.init(num_envs) if expert is not None else None,
-        prev_symbols=jnp.zeros((num_envs, k, heard_links, c), jnp.int32),
-        links=None if draws.lossy is None else draws.lossy.init,
-        last=jnp.zeros((num_envs, k, k - 1, c), jnp.float32) if keeps_last else None,
+        links=links.init((num_envs,), heard_links),
+        wire=None if draws.lossy is None else draws.lossy.init,
         heard=jnp.zeros((num_envs, k, heard_links), bool) if masked else None,
-        sent=jnp.zeros((num_envs, k, k - 1, c), jnp.float32)
-        if keeps_delivered(team, channel_cfg)
-        else None,
     )
     return split_episodes(init._replace(expert=None), axis=0)._replace(expert=init.expert)
 
@@ -445,94 +423,6 @@ def _record(sent, link_bits, later: bool, aside: Aside, **core) -> Trajectory:
         datagram_bits=frames.sum((-2, -1)),
         aside=aside,
     )
-
-
-class Exchange(NamedTuple):
-    """One step of a team's links (:func:`exchange`)."""
-
-    sent: channel.Sent  # the sender side, by sender slot (B, K, K-1, C) or listed (B, K, k, C)
-    got: channel.Received  # the receiver side, in the same layout
-    msgs: jax.Array  # (B, K, width) each recipient's inbox for the next step
-    own: Any  # (B, K, K-1, C) what each link last delivered, by sender (None: not kept)
-    wire: Any  # what ``wire`` returned beside the packets (None without it)
-    z: jax.Array  # the signals sent, after news opened gates: what ``channel.price`` prices
-
-
-def keeps_delivered(team: Team, channel_cfg: ChannelConfig) -> bool:
-    """A team's links carry what each last delivered (:func:`exchange`'s ``held``): a rule reads
-    it (``ChannelConfig.news_margin``) or each sender reads it back (``Team.reads_sent``)."""
-    return team.reads_sent or channel_cfg.news_margin is not None
-
-
-def exchange(
-    channel_cfg: ChannelConfig,
-    reads_sent: bool,
-    z: jax.Array,
-    u,
-    keys: jax.Array,
-    t,
-    prev: jax.Array,
-    *,
-    last=None,
-    held=None,
-    live=None,
-    senders=None,
-    wire: Callable | None = None,
-) -> Exchange:
-    """One step of a team's channel, as the rollout and a team expert
-    (``imitation.team_expert``) both run it: a link with news opens its gate, the sender side,
-    the wire, the receiver side, and the messages routed to their recipients for the next step.
-
-    Args:
-      channel_cfg: the channel.
-      reads_sent: each sender reads back what its own links last delivered
-        (``Team.reads_sent``): its inbox ends with them.
-      z: (B, K, K-1, C) the message heads' outputs by sender slot, or (B, K, k, C) listed by
-        recipient with ``senders``.
-      u: each link's dither, laid out as ``z``.
-      keys: (B,) the episodes' channel keys; t: the step.
-      prev: (B, K, K-1, C) int32 each link's symbols at the previous step (or listed).
-      last: (B, K, K-1, C) each link's last good message, where a rule reads it
-        (``ChannelConfig.holds``, a lossy wire that keeps the last), else None.
-      held: (B, K, K-1, C) what each link last delivered, by sender, where a rule reads it
-        (``news_margin``, ``reads_sent``), else None.
-      live: (B, K, K-1) or (B, K, k) bool, the links that exist (None: all).
-      senders: (B, K, k) int32 each recipient's listed senders (``scaling.nearest_senders``),
-        or None for links by sender slot.
-      wire: ``wire(sent) -> (arrived, ok, extra)``: the noise between the sides
-        (``channel.lossy.LossyLinks.step``); None: every packet arrives as sent.
-
-    Returns:
-      :class:`Exchange`.
-    """
-    if held is not None and senders is None:  # a link with news opens its gate
-        z = channel.news_gate(channel_cfg, z, held)
-    sent = channel.transmit(channel_cfg, z, u, keys, t, prev, live=live, senders=senders)
-    arrived, ok, extra = sent.z_hat, None, None
-    if wire is not None:
-        arrived, ok, extra = wire(sent)
-    got = channel.receive(
-        channel_cfg,
-        arrived,
-        u,
-        ok=ok,
-        last=last,
-        on_drop=channel_cfg.noise.on_drop,
-        live=live,
-        speak=sent.speak,
-        silent=sent.wire_bits == 0 if channel_cfg.holds and sent.speak is None else None,
-    )
-    batch = got.z_hat.shape[:2]
-    if senders is not None:  # already by recipient: its k listed links
-        msgs = got.z_hat.reshape(*batch, -1)
-    else:
-        msgs = channel.deliver(got.z_hat)
-    if got.news is not None:  # which messages are news, by recipient
-        msgs = jnp.concatenate([msgs, channel.inbox(got.news)], -1)
-    own = None if held is None else channel.last_delivered(sent, held)  # by sender
-    if reads_sent:  # each sender reads it back
-        msgs = jnp.concatenate([msgs, own.reshape(*batch, -1)], -1)
-    return Exchange(sent, got, msgs, own, extra, z)
 
 
 def listed_links(team: Team, channel_cfg: ChannelConfig) -> bool:

@@ -205,6 +205,33 @@ def test_only_the_channel_compares_channel_modes():
     assert found == [], "mode strings compared outside channel/:\n" + "\n".join(found)
 
 
+LINK_RULES = {"link_gate", "on_silence", "holds", "news_margin", "news_gate", "last_delivered"}
+"""The link rules' fields and primitives: ``ChannelConfig.build`` (``channel/team.py``) reads
+them for everyone else."""
+
+
+def _link_rule_reads(source: str) -> list[int]:
+    """Lines of ``source`` that read a link rule's field (an attribute, ``cfg.holds``)."""
+    return sorted(
+        node.lineno
+        for node in ast.walk(ast.parse(source))
+        if isinstance(node, ast.Attribute) and node.attr in LINK_RULES
+    )
+
+
+def test_only_the_channel_reads_the_link_rules():
+    # A new link rule is written in channel/ alone: the rollout, a team expert and a deployed
+    # agent step their links through the channel built once from its config.
+    assert _link_rule_reads("a = cfg.channel.holds\nb = ChannelConfig(link_gate=True)\n") == [1]
+    found = [
+        f"{_module_name(p)}:{line}"
+        for p in sorted(ROOT.rglob("*.py"))
+        if not _module_name(p).startswith("sparsecomm.channel")
+        for line in _link_rule_reads(p.read_text())
+    ]
+    assert found == [], "link rules read outside channel/:\n" + "\n".join(found)
+
+
 def test_deploy_draws_no_dither_and_rebuilds_no_message_of_its_own():
     # A deployed agent runs the channel's own sender and receiver sides (channel.transmit,
     # channel.receive, channel.dither_links): none of the quantizer's primitives appear in

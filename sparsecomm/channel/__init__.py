@@ -22,6 +22,10 @@ last=last)`` the receiver side, with the one rule for a missing packet. Its layo
 ``deliver`` routes reconstructions to their recipients; ``lossy.LossyLinks`` is the noise
 between them inside a rollout. This package imports nothing else of sparsecomm.
 
+A team's link rules (``team``): ``build(cfg, num_agents)`` is the channel built once for a
+team, a ``TeamChannel`` that owns its links' state (``LinkState``), answers its actors' inbox
+width and steps its links (``exchange``; a deployed agent's own row: ``agent_send``,
+``agent_receive``).
 Any other team (``layer``, docs/plugin.md): ``send(key, z, routing, t=t)`` sends signals over any
 routing (``Routing``) and returns ``Messages`` (symbols, inbox, penalty, bits per link).
 """
@@ -94,8 +98,13 @@ from sparsecomm.channel.routing import (
     routing_mask,
     slots,
 )
+from sparsecomm.channel.team import Exchange, LinkState, TeamChannel, build
 
 __all__ = [
+    "Exchange",
+    "LinkState",
+    "TeamChannel",
+    "build",
     "CHANNEL_MODES",
     "CHECK_BITS",
     "PRICES",

@@ -318,6 +318,33 @@ class ChannelConfig:
         return num_agents * links * self.num_elements * per_element
 
     @property
+    def link_rules(self) -> dict:
+        """The link rules' settings by field name (``link_gate``, ``on_silence``,
+        ``news_margin``), for tables that say which channel a row ran on."""
+        return {n: getattr(self, n) for n in ("link_gate", "on_silence", "news_margin")}
+
+    @property
+    def opens_on_news(self) -> bool:
+        """A link's gate also opens when what it would say differs from what its recipient
+        holds (``news_margin``): the price of a gate is not the head's alone."""
+        return self.news_margin is not None
+
+    def team_checks(self, reads_sent: bool, aggregate: str) -> dict[str, tuple[bool, str]]:
+        """What a team's agent settings need of this channel, as a learner config's checks
+        (``field: (ok, allowed)``): reading back what its links sent needs silence that holds,
+        and the news inputs of ``hold`` the ``concat`` inbox."""
+        return {
+            "agent.reads_sent": (
+                not reads_sent or self.holds,
+                "False unless channel.on_silence is 'hold'",
+            ),
+            "agent.aggregate": (
+                not self.holds or aggregate == "concat",
+                "'concat' with channel.on_silence 'hold' (its news inputs are per link)",
+            ),
+        }
+
+    @property
     def counted_metric(self) -> str:
         """The logged metric of the bits the channel prices: ``bits_per_step`` (payload) or
         ``wire_bits_per_step``."""

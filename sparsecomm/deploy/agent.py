@@ -187,9 +187,9 @@ class Agent:
         jnp = self.jnp
         self.episode, self.t = episode, -1
         self.carry = jnp.zeros((self.h,), jnp.float32)
-        self.sent_prev = np.zeros((self.k - 1, self.c), np.int32)  # my links' symbols at t - 1
-        self.last = jnp.zeros((self.k - 1, self.c), jnp.float32)
-        self.delivered = jnp.zeros((self.k - 1, self.c), jnp.float32)  # my links' last messages
+        # my links' state (``channel.team.LinkState``, my row): my links' symbols at t - 1 and
+        # what they last delivered, and the last good message of each link I receive
+        self.links = self.channel.build(self.cfg, self.k, lossy=True).init_agent()
 
     def _warm_up(self) -> None:
         """Compile every jitted function before saying hello."""
@@ -203,11 +203,11 @@ class Agent:
             self.gumbel[0, 0],
             0,
             self.chan[0],
-            self.sent_prev,
-            self.delivered,
+            self.links.prev,
+            self.links.own,
         ).action.block_until_ready()
         ok = np.zeros(self.k - 1, bool)
-        self.receive_fn(self.chan[0], 0, self._message_buffer(), ok, ~ok, self.last)
+        self.receive_fn(self.chan[0], 0, self._message_buffer(), ok, ~ok, self.links.last)
 
     def _message_buffer(self) -> np.ndarray:
         """Room for one step's K - 1 incoming messages: the floats of a channel that sends
@@ -363,14 +363,14 @@ class Agent:
             self.gumbel[t, b],
             t,
             self.chan[b],
-            self.sent_prev,
-            self.delivered,
+            self.links.prev,
+            self.links.own,
         )
-        self.carry, self.t, self.delivered = out.carry, t, out.delivered
+        self.carry, self.t = out.carry, t
         symbols, signal = np.asarray(out.symbols), np.asarray(out.signal)
         spoke = np.asarray(out.spoke, bool)
         frame_bits, datagram, sent, sent_n = self._send_frame(b, t, symbols, signal, spoke)
-        self.sent_prev = symbols
+        self.links = self.links._replace(prev=out.symbols, own=out.delivered)
         report = self._report(out, rejoined, frame_bits, missing, spoke, datagram, sent, sent_n)
         act = self.auth.pack(wire.ACT, self.i, wire.WORLD, b, t, wire.pack_report(report))
         self.last_act = ((b, t), act)
@@ -408,7 +408,8 @@ class Agent:
             for r, g in enumerate(got):
                 if g is not None:
                     message[r] = g
-            msgs, self.last = self.receive_fn(self.chan[b], t - 1, message, ok, silent, self.last)
+            msgs, last = self.receive_fn(self.chan[b], t - 1, message, ok, silent, self.links.last)
+            self.links = self.links._replace(last=last)
         return msgs, missing, newer
 
     def _send_frame(self, b: int, t: int, symbols, signal, spoke: np.ndarray):

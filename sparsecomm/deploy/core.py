@@ -153,14 +153,14 @@ def agent_step(team, cfg: ChannelConfig, greedy: bool):
     ``msgs`` as the rollout appends it). The links are the channel's sender side,
     ``channel.transmit``, on the agent's own row."""
     k = team.num_agents
+    links = channel.build(cfg, k, reads_sent=team.reads_sent, lossy=True)
 
     def step(params, i, carry, obs, msgs, gumbel, t, chan_key, prev, delivered):
         def one_row(x):  # a batch of one episode whose only real row is agent i's
             return jnp.zeros((1, k, *x.shape), x.dtype).at[0, i].set(x)
 
-        if team.reads_sent:
-            msgs = jnp.concatenate([msgs, delivered.reshape(-1)])
-
+        state = links.init_agent()._replace(prev=prev, own=delivered)
+        msgs = links.agent_inbox(msgs, state)
         carry, logits, z = team.act(params, one_row(carry), one_row(obs), one_row(msgs))
         log_probs = jax.nn.log_softmax(logits[0, i])
         if greedy:
@@ -171,10 +171,8 @@ def agent_step(team, cfg: ChannelConfig, greedy: bool):
         u = None
         if cfg.quantizes:
             u = channel.dither_links(chan_key, t, i, recipients, cfg.signal_elements)[None]
-        signal = channel.news_gate(cfg, z[0, i], delivered)  # as the rollout
-        sent = channel.transmit(cfg, signal[None], u, prev=prev[None])
+        sent, signal, state = links.agent_send(z[0, i], u, state)  # as the rollout
         spoke = link_speaks(sent)[0]
-        delivered = channel.last_delivered(sent, delivered[None])[0]
         return StepOut(
             carry[0, i],
             action.astype(jnp.int32),
@@ -183,7 +181,7 @@ def agent_step(team, cfg: ChannelConfig, greedy: bool):
             sent.payload_bits[0],
             sent.wire_bits[0].sum(),
             spoke,
-            delivered,
+            state.own,
         )
 
     return jax.jit(step)
@@ -206,30 +204,24 @@ def receive(cfg: ChannelConfig, num_agents: int, on_drop: str):
     (zeros before the first); a silent link is ``ok``. As the rollout, a gated channel hands
     ``channel.receive`` the gate (``speak``: 0 where silent) and a holding one ``silent``."""
     table = jnp.asarray(channel.others(num_agents))
+    links = channel.build(cfg, num_agents, lossy=True, on_drop=on_drop)
 
     def rebuild(chan_key, t, recipient, message, ok, silent, last):
         u = None
         if cfg.quantizes:
             senders = table[recipient]
             u = channel.dither_links(chan_key, t, senders, recipient, cfg.num_elements)
-        said = {}
-        if cfg.link_gate:
-            said["speak"] = (~silent).astype(jnp.float32)
-        elif cfg.holds:
-            said["silent"] = silent
-        got = channel.receive(cfg, message, u, ok=ok, last=last, on_drop=on_drop, **said)
-        msgs = got.z_hat.reshape(-1)
-        if got.news is not None:  # which messages are news, after the messages (the rollout's)
-            msgs = jnp.concatenate([msgs, got.news])
-        return msgs, got.last
+        state = links.init_agent()._replace(last=last)
+        msgs, state = links.agent_receive(message, u, ok, silent, state)
+        return msgs, state.last
 
     return jax.jit(rebuild)
 
 
 def inbox_size(cfg: ChannelConfig, num_agents: int) -> int:
     """Length of an actor's inbox (:func:`receive`'s ``msgs``): ``(K-1) C`` messages, plus
-    ``K-1`` news inputs under ``on_silence = "hold"``."""
-    return (num_agents - 1) * (cfg.num_elements + int(cfg.holds))
+    ``K-1`` news inputs under ``on_silence = "hold"`` (``TeamChannel.received_width``)."""
+    return channel.build(cfg, num_agents).received_width()
 
 
 def frame_slot(sender: int, recipient: int) -> int:
