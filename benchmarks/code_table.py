@@ -25,7 +25,7 @@ import tyro
 from sparsecomm.channel.fitted import fit
 from sparsecomm.codestats import FIT_SEED_OFFSET, link_symbols, measure
 from sparsecomm.configs import ILConfig
-from sparsecomm.reproduce.provenance import hardware
+from sparsecomm.provenance import hardware
 from sparsecomm.runfolder import load_run
 
 EVAL_OFFSET = 3_000_017

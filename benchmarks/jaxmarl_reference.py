@@ -54,7 +54,7 @@ from sparsecomm.envs.jaxmarl_reference import (  # noqa: E402
     WORDS,
     ReferenceConfig,
 )
-from sparsecomm.reproduce.provenance import hardware  # noqa: E402
+from sparsecomm.provenance import hardware  # noqa: E402
 from sparsecomm.rl import make_train  # noqa: E402
 from sparsecomm.rollout import episode_metrics, rollout  # noqa: E402
 from sparsecomm.stats import bootstrap_ci  # noqa: E402

@@ -23,7 +23,7 @@ import tyro  # noqa: E402
 
 from sparsecomm.channel import NoiseConfig  # noqa: E402
 from sparsecomm.experiment import evaluate_runs  # noqa: E402
-from sparsecomm.reproduce.provenance import hardware  # noqa: E402
+from sparsecomm.provenance import hardware  # noqa: E402
 from sparsecomm.runfolder import learner_for, load_run  # noqa: E402
 
 SETTINGS = {

@@ -167,7 +167,7 @@ def main():
     p.add_argument("--record", type=Path, help="write the first case's record here and stop")
     a = p.parse_args()
     if a.record is not None:
-        from sparsecomm.reproduce.provenance import hardware
+        from sparsecomm.provenance import hardware
 
         name, (make, cfg, lam, budget) = next(iter(cases().items()))
         record = {"case": name, "machine": hardware(), **summary(trained(make, cfg, lam, budget))}

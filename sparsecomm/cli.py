@@ -6,8 +6,9 @@ of ``train`` and ``imitate`` choose the defaults the others start from: ``--pres
 (``configs.PRESETS``) and ``--task NAME``, a registered task (``sparsecomm.envs.registry``)
 whose config's defaults replace ``--config.env``'s (``--task NAME --help`` lists its fields).
 ``eval``, ``render``, ``export`` and ``deploy`` read the task from the run folder. The work is
-done in :mod:`sparsecomm.experiment`, :mod:`sparsecomm.codestats`, :mod:`sparsecomm.reproduce`,
-:mod:`sparsecomm.paper_task` and :mod:`sparsecomm.deploy`; this module only parses.
+done in :mod:`sparsecomm.experiment`, :mod:`sparsecomm.codestats`, :mod:`sparsecomm.deploy` and
+the paper's pipelines (:mod:`sparsecomm.pipelines`: ``reproduce``, ``paper-task``); this module
+only parses.
 """
 
 from __future__ import annotations
@@ -34,8 +35,8 @@ from sparsecomm.experiment import (
     render,
     train,
 )
-from sparsecomm.paper_task import PaperTask, paper_task
-from sparsecomm.reproduce import Reproduce, reproduce
+from sparsecomm.pipelines.paper_task import PaperTask, paper_task
+from sparsecomm.pipelines.reproduce import Reproduce, reproduce
 from sparsecomm.sharding import use_host_cores
 
 

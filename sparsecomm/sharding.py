@@ -109,6 +109,17 @@ def use_host_cores() -> int | None:
     return cores
 
 
+def fast_compile(on: bool) -> bool:
+    """Set ``jax_disable_most_optimizations``: programs compile several times faster and run
+    about 3x slower. Returns its previous value."""
+    try:
+        previous = bool(jax.config._read("jax_disable_most_optimizations"))
+    except (AttributeError, KeyError):
+        previous = False
+    jax.config.update("jax_disable_most_optimizations", on)
+    return previous
+
+
 def sweep_devices(num_runs: int, devices: Sequence | None = None) -> list:
     """The devices the commands give a sweep (or an evaluation) of ``num_runs`` runs.
 

@@ -2,7 +2,7 @@
 
 import pytest
 
-from sparsecomm.reproduce import fast_compile as set_fast_compile
+from sparsecomm.sharding import fast_compile as set_fast_compile
 
 
 @pytest.fixture

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sparsecomm.reproduce.provenance import hardware
+from sparsecomm.provenance import hardware
 
 ROOT = Path(__file__).parent.parent
 RECORD = json.loads((ROOT / "tests" / "data" / "rl3.json").read_text())

@@ -5,7 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from sparsecomm import frontier
+from sparsecomm.pipelines import frontier
+from sparsecomm.pipelines import rows as rowlib
 from sparsecomm.stats import curves, read_csv
 
 
@@ -33,7 +34,7 @@ IL = _results([(None, 0.0, 0.90, 150.0, 80.0), (8.0, 0.0, 0.50, 8.0, 150.0)])
 
 
 def test_rows_group_by_budget_and_lambda_with_cis():
-    rows = frontier.rows(RL, "rl")
+    rows = rowlib.rows(RL, "rl")
     assert [(r["budget"], r["lam"], r["seeds"]) for r in rows] == [(None, 0.0, 3), (16.0, 0.0, 3)]
     success = rows[1]["success"]
     assert success[0] == pytest.approx(0.93) and success[1] <= 0.93 <= success[2]
@@ -41,7 +42,7 @@ def test_rows_group_by_budget_and_lambda_with_cis():
 
 
 def test_budget_matched_claims_and_targets():
-    table = frontier.rows(RL, "rl") + frontier.rows(IL, "imitation")
+    table = rowlib.rows(RL, "rl") + rowlib.rows(IL, "imitation")
     claims = {c["claim"]: c for c in frontier.budget_claims(table)}
     assert claims[4]["held"] and claims[4]["budgets_held"] == [16.0]
     assert not claims[5]["held"]  # budget 8 loses 0.4 success
@@ -76,7 +77,7 @@ def test_curves_group_fixed_lambda_runs_once(tmp_path):
 def test_each_series_is_judged_against_its_own_lambda_zero(tmp_path):
     # The same budget 8 run: lost against a strong reference, kept against a weak one.
     weak = _results([(None, 0.0, 0.52, 150.0, 80.0), (8.0, 0.0, 0.50, 8.0, 150.0)])
-    table = frontier.rows(IL, "imitation", "strong") + frontier.rows(weak, "imitation", "weak")
+    table = rowlib.rows(IL, "imitation", "strong") + rowlib.rows(weak, "imitation", "weak")
     assert frontier.series_of(table) == [("imitation", "strong"), ("imitation", "weak")]
     targets = {t["series"]: t for t in frontier.targets(table)}
     assert not targets["strong"]["met"] and targets["weak"]["met"]
@@ -92,7 +93,6 @@ def test_each_series_is_judged_against_its_own_lambda_zero(tmp_path):
 
 
 def test_wire_frontier_rows_count_the_network_from_the_datagrams():
-    from sparsecomm import wire_frontier
     from sparsecomm.channel import ChannelConfig
     from sparsecomm.configs import RLConfig
 
@@ -112,27 +112,27 @@ def test_wire_frontier_rows_count_the_network_from_the_datagrams():
         }
         for s in range(5)
     ]
-    (row,) = wire_frontier.rows({"runs": runs}, config, "small", "rl")
+    (row,) = rowlib.rows({"runs": runs}, "rl", config=config, task="small")
     assert (row["counts"], row["budget"], row["seeds"], row["check_bits"]) == ("wire", 24.0, 5, 8)
     assert row["network_bits"][0] == pytest.approx(26.0 + 0.5 * 8 * (19 + 28))
     lo, mean, hi = row["success"][1], row["success"][0], row["success"][2]
     assert lo < mean < hi and mean == pytest.approx(0.92)
     old = [{k: v for k, v in r.items() if not k.startswith("datagram")} for r in runs]
-    assert wire_frontier.rows({"runs": old}, config, "small", "rl")[0]["network_bits"] is None
+    assert rowlib.rows({"runs": old}, "rl", config=config, task="small")[0]["network_bits"] is None
     with pytest.raises(ValueError, match="task"):
-        wire_frontier.rows({"runs": runs}, config, "big", "rl")
+        rowlib.rows({"runs": runs}, "rl", config=config, task="big")
     # a row of event-triggered links stands beside the learned gate's, not in its place
     news = ChannelConfig(prices="wire", link_gate=True, on_silence="hold", news_margin=0.1)
-    (other,) = wire_frontier.rows({"runs": runs}, RLConfig(channel=news), "small", "rl")
+    (other,) = rowlib.rows({"runs": runs}, "rl", config=RLConfig(channel=news), task="small")
     assert other["news_margin"] == 0.1 and row["news_margin"] is None
-    assert wire_frontier.row_key(other) != wire_frontier.row_key(row)
+    assert rowlib.row_key(other) != rowlib.row_key(row)
     legacy = {k: v for k, v in row.items() if k != "news_margin"}  # written before the field
-    assert wire_frontier.row_key(legacy) == wire_frontier.row_key(row)
+    assert rowlib.row_key(legacy) == rowlib.row_key(row)
     # the per-seed figures give the runs back, through JSON, for a verdict without the folder
-    back = wire_frontier.seed_runs(json.loads(json.dumps(row)))
-    keys = ("seed", "lam", "budget", *wire_frontier.COLUMNS.values())
+    back = rowlib.seed_runs(json.loads(json.dumps(row)))
+    keys = ("seed", "lam", "budget", *rowlib.WIRE_COLUMNS.values())
     assert back == [{k: r[k] for k in keys} for r in runs]
-    assert wire_frontier.seed_runs(legacy | {"per_seed": None}) == []
+    assert rowlib.seed_runs(legacy | {"per_seed": None}) == []
 
 
 def test_wire_frontier_rows_say_the_learner_and_when_its_mean_success_passed(tmp_path):
@@ -141,7 +141,6 @@ def test_wire_frontier_rows_say_the_learner_and_when_its_mean_success_passed(tmp
     Budget 16: never. ``time_to_target`` reads it from the folder's CSVs."""
     import csv
 
-    from sparsecomm import wire_frontier
     from sparsecomm.configs import ILConfig, RLConfig
 
     steps = 1024  # env steps per update
@@ -154,11 +153,11 @@ def test_wire_frontier_rows_say_the_learner_and_when_its_mean_success_passed(tmp
                     ok = budget == "" and u > 10
                     w.writerow([seed, 0.0, budget, u, u * steps, u * 4, 1.0 if ok else 0.5])
     (tmp_path / "wall.csv").write_text("update,wall_s\n7,7.5\n14,14.5\n21,21.5\n28,28.5\n")
-    times = wire_frontier.time_to_target(tmp_path)
+    times = rowlib.time_to_target(tmp_path)
     assert times == {(None, 0.0): (20.0 * steps, 21.5), (16.0, 0.0): (None, None)}
     (tmp_path / "wall.csv").unlink()
-    assert wire_frontier.time_to_target(tmp_path)[(None, 0.0)] == (20.0 * steps, None)
-    assert wire_frontier.time_to_target(tmp_path / "nothing") == {}
+    assert rowlib.time_to_target(tmp_path)[(None, 0.0)] == (20.0 * steps, None)
+    assert rowlib.time_to_target(tmp_path / "nothing") == {}
 
     runs = [
         {"seed": s, "lam": 0.0, "budget": b, "success_rate": 0.9, "episode_length": 20.0,
@@ -166,27 +165,26 @@ def test_wire_frontier_rows_say_the_learner_and_when_its_mean_success_passed(tmp
         for b in (None, 16.0) for s in (0, 1)
     ]  # fmt: skip
     ppo = RLConfig(algo="ppo", num_envs=32)
-    rl = wire_frontier.rows({"runs": runs}, ppo, "paper", "rl", times)
+    rl = rowlib.rows({"runs": runs}, "rl", config=ppo, task="paper", times=times)
     learners = [(r["algo"], r["expert"], r["episodes_per_update"]) for r in rl]
     assert learners == [("ppo", None, 32)] * 2
     assert [(r["env_steps_to_095"], r["wall_s_to_095"]) for r in rl] == [
         (20.0 * steps, 21.5),
         (None, None),
     ]
-    il = wire_frontier.rows({"runs": runs}, ILConfig(), "paper", "imitation")
+    il = rowlib.rows({"runs": runs}, "imitation", config=ILConfig(), task="paper")
     assert {(r["algo"], r["expert"], r["env_steps_to_095"]) for r in il} == {
         ("dagger", "oracle", None)
     }
 
 
 def test_wire_frontier_reads_a_deployments_figures_over_its_runs():
-    from sparsecomm import wire_frontier
 
     runs = [
         {"success_rate": s, "network_bits_per_step": b, "simulation": {"identical_episodes": 50}}
         for s, b in ((0.9, 140.0), (0.95, 160.0), (0.92, 150.0))
     ]
-    got = wire_frontier.deployed({"runs": runs, "episodes_per_run": 50})
+    got = rowlib.deployed({"runs": runs, "episodes_per_run": 50})
     assert got["runs"] == 3 and got["episodes"] == 50 and got["identical_episodes"] == 150
     assert got["network_bits"][0] == pytest.approx(150.0)
     assert got["network_bits"][1] < 150.0 < got["network_bits"][2]

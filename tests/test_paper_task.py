@@ -6,7 +6,7 @@ import shutil
 import pytest
 
 from sparsecomm.cli import main
-from sparsecomm.paper_task import PARTS, PaperTask, summarise
+from sparsecomm.pipelines.paper_task import PARTS, PaperTask, summarise
 from sparsecomm.runfolder import read_config
 
 TINY = [
@@ -95,9 +95,9 @@ def test_lambda_verdicts_come_from_the_rows_or_stay_as_they_were():
     """Claim 4 from rows alone (no run folder): lambdas 0.001 and 0.005 keep lambda 0's success
     and length, 0.005 at a third of its bits, 0.01 collapses; rows without per-seed figures
     (written before they existed) and parts without rows keep their earlier verdicts."""
-    from sparsecomm import wire_frontier
     from sparsecomm.configs import RLConfig
-    from sparsecomm.paper_task import lambda_claims
+    from sparsecomm.pipelines import rows as rowlib
+    from sparsecomm.pipelines.paper_task import lambda_claims
 
     def runs(lam, success, length, bits):
         return [
@@ -108,9 +108,11 @@ def test_lambda_verdicts_come_from_the_rows_or_stay_as_they_were():
         ]  # fmt: skip
 
     config = RLConfig()
-    zero = wire_frontier.rows({"runs": runs(0.0, 0.98, 60.0, 135.0)}, config, "paper", "rl")
+    zero = rowlib.rows({"runs": runs(0.0, 0.98, 60.0, 135.0)}, "rl", config=config, task="paper")
     lams = [(0.001, 0.98, 61.0, 90.0), (0.005, 0.98, 62.0, 45.0), (0.01, 0.0, 256.0, 2.0)]
-    lams = wire_frontier.rows({"runs": [r for p in lams for r in runs(*p)]}, config, "paper", "rl")
+    lams = rowlib.rows(
+        {"runs": [r for p in lams for r in runs(*p)]}, "rl", config=config, task="paper"
+    )
     table = [r | {"part": "rl"} for r in zero] + [r | {"part": "rl_lams"} for r in lams]
     earlier = [{"part": "rl_lams", "claim": 4, "held": False}, {"part": "il_lams", "claim": 5}]
     verdict, kept = lambda_claims(table, earlier)  # no il_lams rows: its verdict is kept
@@ -124,8 +126,8 @@ def test_lambda_verdicts_come_from_the_rows_or_stay_as_they_were():
 def test_greedy_figures_are_judged_apart_from_the_sampled_ones():
     """``targets_greedy`` judges the rows' greedy figures: a budget row that misses on sampled
     length (1.3x) but not on greedy length (1.2x) is met there and only there."""
-    from sparsecomm import frontier
-    from sparsecomm.paper_task import greedy_table
+    from sparsecomm.pipelines import frontier
+    from sparsecomm.pipelines.paper_task import greedy_table
 
     def row(budget, success, length, bits, g_length):
         figures = dict(success=[success] * 3, episode_length=[length] * 3, payload_bits=[bits] * 3)

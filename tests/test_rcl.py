@@ -13,9 +13,9 @@ from scipy import stats
 from sparsecomm.channel import transmit
 from sparsecomm.configs import AgentConfig, ChannelConfig, RLConfig
 from sparsecomm.envs.navigation import NavConfig
-from sparsecomm.reproduce import fast_compile as set_fast_compile
 from sparsecomm.rl import make_train
 from sparsecomm.rollout import rollout
+from sparsecomm.sharding import fast_compile as set_fast_compile
 
 RCL = ChannelConfig(mode="reinforced", levels=15, num_elements=4)
 

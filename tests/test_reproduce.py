@@ -4,11 +4,11 @@ import json
 
 import pytest
 
-from sparsecomm import claims
 from sparsecomm.cli import main
-from sparsecomm.reproduce import BUDGETS, IL_LAMS, PARTS, RL_LAMS, Reproduce
-from sparsecomm.reproduce.provenance import source_digest
-from sparsecomm.reproduce.runs import expert_index
+from sparsecomm.pipelines import claims
+from sparsecomm.pipelines.plan import expert_index
+from sparsecomm.pipelines.reproduce import BUDGETS, IL_LAMS, PARTS, RL_LAMS, Reproduce
+from sparsecomm.provenance import source_digest
 
 TINY = [
     "--quick",

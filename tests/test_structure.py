@@ -290,3 +290,18 @@ def test_tasks_are_found_by_name_not_by_class():
                 if name in ("NavigationEnv", "NavigationTask", "SimpleReference"):
                     named.append(f"{where}:{node.lineno if hasattr(node, 'lineno') else ''} {name}")
     assert named == []
+
+
+def test_only_the_command_line_imports_the_pipelines():
+    # The paper's pipelines sit above the library: no module outside sparsecomm/pipelines/
+    # reaches into them, except the command line that runs them.
+    pipelines = "sparsecomm.pipelines"
+    found = sorted(
+        module
+        for module, deps in _graph().items()
+        if not (module == pipelines or module.startswith(pipelines + "."))
+        and module != "sparsecomm.cli"
+        and any(d == pipelines or d.startswith(pipelines + ".") for d in deps)
+    )
+    assert found == []
+    assert "sparsecomm.pipelines.reproduce" in _graph()["sparsecomm.cli"]

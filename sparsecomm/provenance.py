@@ -1,4 +1,5 @@
-"""Where a part ran: the machine and software, the code's git commit and source digest."""
+"""Where code ran: the machine and software, the code's git commit and source digest (read by
+the benchmarks, the scripts and the paper's pipelines)."""
 
 from __future__ import annotations
 
@@ -11,12 +12,12 @@ from pathlib import Path
 import jax
 import jaxlib
 
-PACKAGE = Path(__file__).parent.parent
+PACKAGE = Path(__file__).parent
 """The ``sparsecomm`` package folder: its sources are digested, its git repository asked."""
 
 
 def hardware() -> dict:
-    """The machine and software a part ran on."""
+    """The machine and software this process runs on."""
     cpu = platform.processor() or platform.machine()
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():

@@ -4,23 +4,40 @@
 :func:`write_report` reads every part found under ``out`` (also parts run earlier) and writes
 ``fig1.png``, ``fig2.png``, ``fig3.png``, ``pareto.png``, ``table1.md``, ``report.md`` and
 ``summary.json``, and with the budget parts ``frontier.png`` and ``budget_summary.json``
-(:mod:`sparsecomm.frontier`). All numbers in them come from the runs' ``results.json`` and
-``metrics.csv``; the verdicts from the rules of :mod:`sparsecomm.claims`.
+(rows of :mod:`sparsecomm.pipelines.rows`, :mod:`sparsecomm.pipelines.frontier`). All numbers in
+them come from the runs' ``results.json`` and ``metrics.csv``; the verdicts from the rules of
+:mod:`sparsecomm.pipelines.claims`.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
-from sparsecomm import claims, frontier
 from sparsecomm.jsonfile import read_json
-from sparsecomm.reproduce.plan import BASELINE_LABELS, PARTS
-from sparsecomm.reproduce.provenance import git_commit
+from sparsecomm.pipelines import claims, frontier
+from sparsecomm.pipelines.plan import Part
+from sparsecomm.pipelines.rows import write_rows
+from sparsecomm.pipelines.runner import part_rows
+from sparsecomm.provenance import git_commit
 from sparsecomm.stats import plot_curves, plot_pareto
 
+BASELINE_LABELS = {
+    "no_comm": "no communication (RL)",
+    "continuous": "real-valued messages, float32 (RL)",
+    "fixed": "fixed-width code (RL, λ=0 teams)",
+    "rcl": "reinforced comm. learning (RCL)",
+    "oracle": "oracle (centralised, upper bound)",
+    "centre": "scripted, no communication (centre)",
+}
+"""Each baseline's label in the figures and the report (``centre`` comes with ``oracle``)."""
+BUDGET_PARTS = ("rl_budget", "il_budget", "il_budget_rl")
+"""The parts whose presence in ``out`` puts the bit-budget frontier in the report."""
 
-def collect(out: Path) -> dict:
-    """The summary (see :mod:`sparsecomm.report_md`) of every part found under ``out``."""
+
+def collect(out: Path, plan: Sequence[Part]) -> dict:
+    """The summary (see :mod:`sparsecomm.pipelines.claims`) of every part of ``plan`` found
+    under ``out``, with the frontier's rows when a budget part is there."""
     summary: dict = {}
     for part in ("rl", "imitation"):
         res = read_json(out / part / "results.json")
@@ -48,21 +65,11 @@ def collect(out: Path) -> dict:
         auc["rcl"] = next(iter(claims.training_mean(out / "rcl" / "metrics.csv").values()))
     if auc:
         summary["training_success"] = auc
-    # (part, learner, series): each series is judged against its own lambda 0.
-    budget_parts = (
-        ("rl", "rl", None),
-        ("rl_budget", "rl", None),
-        ("imitation", "imitation", None),
-        ("il_budget", "imitation", None),
-        ("il_budget_rl", "imitation", "RL team"),
-    )
-    if any((out / part).exists() for part in ("rl_budget", "il_budget", "il_budget_rl")):
-        summary["frontier"] = [
-            row
-            for part, learner, series in budget_parts
-            if (doc := read_json(out / part / "results.json"))
-            for row in frontier.rows(doc, learner, series)
-        ]
+    if any((out / part).exists() for part in BUDGET_PARTS):
+        found = part_rows(plan, out)  # RL's parts first, then imitation's, each in plan order
+        learner = {p.name: p.learner for p in plan}
+        order = sorted(found, key=lambda name: learner[name] != "rl")
+        summary["frontier"] = [row for name in order for row in found[name]]
     return summary
 
 
@@ -125,12 +132,12 @@ def write_figures(out: Path, summary: dict) -> list[Path]:
     return made
 
 
-def _hardware_lines(timings: dict) -> list[str]:
+def _hardware_lines(timings: dict, parts: Sequence[str]) -> list[str]:
     lines = [
         "| part | wall-clock | CPU | cores (usable) | device | jax | commit | finished |",
         "|---|---:|---|---|---|---|---|---|",
     ]
-    for part in PARTS:
+    for part in parts:
         t = timings.get(part)
         if t is None:
             continue
@@ -143,9 +150,9 @@ def _hardware_lines(timings: dict) -> list[str]:
     return lines
 
 
-def _budget_lines(timings: dict) -> list[str]:
+def _budget_lines(timings: dict, parts: Sequence[str]) -> list[str]:
     lines = ["| part | budget |", "|---|---|"]
-    for part in PARTS:
+    for part in parts:
         if part in timings:
             b = timings[part]["budget"]
             lines.append(f"| {part} | " + ", ".join(f"{k} {v}" for k, v in b.items()) + " |")
@@ -229,7 +236,7 @@ def _intro_lines(summary: dict, command: str, timings: dict) -> list[str]:
 
 def _claim_lines(verdicts: list) -> list[str]:
     """The table of the paper's claims: each one's number ("extra" for none), text, verdict,
-    the numbers it rests on and its rule (:func:`sparsecomm.claims.decide_claims`)."""
+    the numbers it rests on and its rule (:func:`sparsecomm.pipelines.claims.decide_claims`)."""
     md = ["## The paper's claims (SPEC section 7)", ""]
     md += ["| # | claim | verdict | numbers | rule |", "|---|---|---|---|---|"]
     for c in verdicts:
@@ -281,7 +288,7 @@ def _training_lines(auc: dict) -> list[str]:
     return md
 
 
-def _appendix_lines(figures: list[Path], timings: dict) -> list[str]:
+def _appendix_lines(figures: list[Path], timings: dict, parts: Sequence[str]) -> list[str]:
     """The report's closing sections: the figures written (linked by file name), and from
     ``timings.json`` each part's hardware, wall-clock time and budget."""
     md = []
@@ -291,22 +298,23 @@ def _appendix_lines(figures: list[Path], timings: dict) -> list[str]:
         md.append("")
     if timings:
         md += ["## Hardware and wall-clock", ""]
-        md += _hardware_lines(timings) + [""]
+        md += _hardware_lines(timings, parts) + [""]
         md += ["## Budgets", ""]
-        md += _budget_lines(timings) + [""]
+        md += _budget_lines(timings, parts) + [""]
     return md
 
 
-def write_report(out: Path, command: str = "") -> dict:
-    """Figures, table1.md, summary.json and report.md from every part found in ``out``."""
-    summary = collect(out)
+def write_report(out: Path, plan: Sequence[Part], command: str = "") -> dict:
+    """Figures, table1.md, summary.json and report.md from every part of ``plan`` found in
+    ``out``."""
+    summary = collect(out, plan)
     if not summary:
         raise ValueError(f"no part results found in {out}")
     claims.write_summary(
         {k: v for k, v in summary.items() if k != "frontier"}, out / "summary.json"
     )
     if summary.get("frontier"):
-        frontier.write_rows(summary["frontier"], out / "budget_summary.json")
+        write_rows(summary["frontier"], out / "budget_summary.json")
     figures = write_figures(out, summary)
     if "imitation" in summary:
         (out / "table1.md").write_text(claims.table1(summary["imitation"]))
@@ -315,6 +323,6 @@ def write_report(out: Path, command: str = "") -> dict:
     md = _intro_lines(summary, command, timings)
     md += _claim_lines(verdicts)
     md += _result_lines(summary)
-    md += _appendix_lines(figures, timings)
+    md += _appendix_lines(figures, timings, [p.name for p in plan])
     (out / "report.md").write_text("\n".join(md))
     return summary

@@ -20,16 +20,17 @@ finished part is only re-evaluated:
 
 Then, from every part found in ``out``, it writes to ``results``:
 
-- ``summary.json``: one row per (part, budget, lambda) group over its seeds, the rows of
-  :func:`sparsecomm.wire_frontier.rows` (``learner``, ``algo``, ``expert``, ``budget``, ``lam``,
+- ``summary.json``: one row per (part, budget, lambda) group over its seeds, rows of the wire
+  form of :mod:`sparsecomm.pipelines.rows` (``learner``, ``algo``, ``expert``, ``budget``, ``lam``,
   ``seeds``, ``success``, ``episode_length``, ``payload_bits``, ``wire_bits`` as ``[mean, lo,
   hi]`` with 95% BCa CIs over seeds, ``env_steps_to_095``, ``wall_s_to_095``, ``per_seed``,
   ...) with a ``series`` naming the expert of imitation of the RL team;
-- ``frontier.png``: success against payload and wire bits (:func:`sparsecomm.frontier.plot`);
+- ``frontier.png``: success against payload and wire bits
+  (:func:`sparsecomm.pipelines.frontier.plot`);
 - ``claims.json``: claims 4 and 5 at budget-matched points and at the paper's lambdas, and the
   task's targets (budget 32, stretch 16, met within 10% at >= 95% of lambda 0's success with
-  episodes at most 1.25x its length: :func:`sparsecomm.frontier.targets`), judged on sampled
-  actions (the convention of training, ``sparsecomm eval`` and deployed agents); with
+  episodes at most 1.25x its length: :func:`sparsecomm.pipelines.frontier.targets`), judged on
+  sampled actions (the convention of training, ``sparsecomm eval`` and deployed agents); with
   ``greedy``, ``targets_greedy`` judges the same targets on the teams' most probable actions.
 
 With ``greedy`` every part's runs are evaluated a second time taking their most probable
@@ -44,19 +45,27 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from sparsecomm import claims, frontier, wire_frontier
 from sparsecomm.channel import ChannelConfig
 from sparsecomm.configs import PRESETS, ILConfig, RLConfig, check_budget_fits
-from sparsecomm.experiment import Imitate, Train, evaluate_runs, train
+from sparsecomm.experiment import evaluate_runs
 from sparsecomm.jsonfile import read_json, write_json
-from sparsecomm.reproduce.plan import IL_LAMS, RL_LAMS
-from sparsecomm.reproduce.runs import expert_index
-from sparsecomm.runfolder import RESULTS, at_least, load_run, read_config
+from sparsecomm.pipelines import claims, frontier
+from sparsecomm.pipelines import rows as rowlib
+from sparsecomm.pipelines.plan import IL_LAMS, RL_LAMS, Part, Sweep, expert_index
+from sparsecomm.pipelines.runner import SweepOptions, part_rows, run_parts
+from sparsecomm.runfolder import at_least, load_run, read_config
 
-PARTS = ("rl", "il_oracle", "il_rl", "rl_lams", "il_lams")
-"""Every part, in the order they run (``il_rl`` needs ``rl``)."""
-SERIES = {"il_rl": "RL team"}
-"""A part's series in the frontier (each series is judged against its own lambda 0)."""
+PLAN = (
+    Part("rl", "rl"),
+    Part("il_oracle", "imitation"),
+    Part("il_rl", "imitation", "RL team"),
+    Part("rl_lams", "rl"),
+    Part("il_lams", "imitation"),
+)
+"""Every part, in the order they run (``il_rl`` needs ``rl``), with its rows' learner and series
+(each series is judged against its own lambda 0)."""
+PARTS = tuple(p.name for p in PLAN)
+"""Every part's name, in the order they run."""
 NEWS = ChannelConfig(link_gate=True, on_silence="hold", news_margin=0.1)
 """The ``rl`` part's channel: a gate per link that news also opens (a gap of 0.1 between what a
 sender would say and what its recipient holds), a silent link held by its recipient; payload
@@ -136,36 +145,38 @@ class PaperTask:
             check_budget_fits(config, self.budgets, "budgets", owner="PaperTask")
 
 
-def part_args(args: PaperTask, part: str) -> Train:
-    """The ``Train`` / ``Imitate`` arguments of one part."""
+def build_part(args: PaperTask, part: str) -> Sweep:
+    """The sweep of one part."""
     rl, il = args.rl, args.il
-    common = dict(
+    budgets = (None, *args.budgets)
+    if part == "rl":
+        return Sweep(rl, budgets=budgets)
+    if part == "rl_lams":
+        return Sweep(rl, lams=tuple(x for x in RL_LAMS if x > 0))
+    if part == "il_oracle":
+        return Sweep(dataclasses.replace(il, expert="oracle"), budgets=budgets)
+    if part == "il_lams":
+        lams = tuple(x for x in IL_LAMS if x > 0)
+        return Sweep(dataclasses.replace(il, expert="oracle"), lams=lams)
+    if part == "il_rl":
+        folder = args.out / "rl"
+        expert = dict(expert_checkpoint=str(folder), expert_index=expert_index(folder))
+        return Sweep(dataclasses.replace(il, expert="checkpoint", **expert), budgets=budgets)
+    raise ValueError(f"part must be one of {PARTS}, got {part!r}")
+
+
+def sweep_options(args: PaperTask) -> SweepOptions:
+    """What every part's sweep shares."""
+    return SweepOptions(
         seeds=args.seeds,
-        out=args.out / part,
+        eval_episodes=args.eval_episodes,
         chunk=args.chunk,
         checkpoint_every=args.checkpoint_every,
         resume=args.resume,
         tensorboard=False,
-        eval_episodes=args.eval_episodes,
         gif=args.gif,
         progress=args.progress,
     )
-    budgets = (None, *args.budgets)
-    if part == "rl":
-        return Train(config=rl, budgets=budgets, **common)
-    if part == "rl_lams":
-        return Train(config=rl, lams=tuple(x for x in RL_LAMS if x > 0), **common)
-    if part == "il_oracle":
-        return Imitate(config=dataclasses.replace(il, expert="oracle"), budgets=budgets, **common)
-    if part == "il_lams":
-        lams = tuple(x for x in IL_LAMS if x > 0)
-        return Imitate(config=dataclasses.replace(il, expert="oracle"), lams=lams, **common)
-    if part == "il_rl":
-        folder = args.out / "rl"
-        expert = dict(expert_checkpoint=str(folder), expert_index=expert_index(folder))
-        config = dataclasses.replace(il, expert="checkpoint", **expert)
-        return Imitate(config=config, budgets=budgets, **common)
-    raise ValueError(f"part must be one of {PARTS}, got {part!r}")
 
 
 def evaluate_greedy(folder: Path, episodes: int) -> Path:
@@ -177,15 +188,15 @@ def evaluate_greedy(folder: Path, episodes: int) -> Path:
 
 def with_greedy(rows: list[dict], folder: Path, task: str, learner: str) -> list[dict]:
     """``rows`` with a ``greedy`` field from ``folder``'s ``GREEDY`` evaluation (the metrics of
-    :data:`sparsecomm.wire_frontier.COLUMNS` as ``[mean, lo, hi]`` and ``per_seed``), matched
-    by group; unchanged when the folder has none."""
+    :data:`sparsecomm.pipelines.rows.WIRE_COLUMNS` as ``[mean, lo, hi]`` and ``per_seed``),
+    matched by group; unchanged when the folder has none."""
     results = read_json(folder / GREEDY)
     if results is None:
         return rows
-    # wire_frontier.rows, not read_rows: the training curves were read for ``rows`` already
-    greedy = wire_frontier.rows(results, read_config(folder), task, learner)
+    # rows, not read_rows: the training curves were read for ``rows`` already
+    greedy = rowlib.rows(results, learner, config=read_config(folder), task=task)
     found = {(r["budget"], r["lam"]): r for r in greedy}
-    names = (*wire_frontier.COLUMNS, "per_seed")
+    names = (*rowlib.WIRE_COLUMNS, "per_seed")
     out = []
     for row in rows:
         g = found.get((row["budget"], row["lam"]))
@@ -203,17 +214,15 @@ def summarise(args: PaperTask) -> list[dict]:
     and the rows an earlier ``summary.json`` in ``results`` holds of parts not found there (a
     part run earlier, whose run folder is gone, keeps its rows)."""
     found = {}
-    for part in PARTS:
-        path = args.out / part / RESULTS
-        if not path.exists():
+    for part in PLAN:
+        rows = part_rows([part], args.out, task="paper").get(part.name)
+        if rows is None:
             continue
-        learner = "rl" if part.startswith("rl") else "imitation"
-        rows = wire_frontier.read_rows(path, "paper", learner)
-        rows = with_greedy(rows, args.out / part, "paper", learner)
-        found[part] = [row | {"part": part, "series": SERIES.get(part)} for row in rows]
+        rows = with_greedy(rows, args.out / part.name, "paper", part.learner)
+        found[part.name] = [row | {"part": part.name, "series": part.series} for row in rows]
     if not found:
         return []
-    earlier = read_json(args.results / "summary.json") or []
+    earlier = [rowlib.from_json(r) for r in read_json(args.results / "summary.json") or []]
     kept = [r for r in earlier if r.get("part") in PARTS and r["part"] not in found]
     for row in kept:
         found.setdefault(row["part"], []).append(row)
@@ -239,20 +248,20 @@ LAMBDA_CLAIMS = (
     ("il_lams", "il_oracle", "imitation", claims.claim_imitation),
 )
 """Each ``*_lams`` part, the part whose lambda-0 runs are its reference, the learner's name in
-:mod:`sparsecomm.claims` and the claim that judges them (4 and 5)."""
+:mod:`sparsecomm.pipelines.claims` and the claim that judges them (4 and 5)."""
 
 
 def lambda_claims(table: list[dict], earlier: list[dict]) -> list[dict]:
     """Claims 4 and 5 at the paper's lambdas: each ``*_lams`` part's runs with its series'
     lambda-0 runs (the ``rl`` / ``il_oracle`` row without a budget), read from the rows'
-    per-seed figures (:func:`sparsecomm.wire_frontier.seed_runs`), so that a verdict survives
+    per-seed figures (:func:`sparsecomm.pipelines.rows.seed_runs`), so that a verdict survives
     its run folders. A claim whose rows lack them (rows written before rows carried per-seed
     figures) keeps its ``earlier`` verdict."""
     found = []
     for part, ref, name, claim in LAMBDA_CLAIMS:
         lams = [r for r in table if r["part"] == part]
         zero = [r for r in table if r["part"] == ref and r["budget"] is None]
-        runs = [run for r in lams + zero for run in wire_frontier.seed_runs(r)]
+        runs = [run for r in lams + zero for run in rowlib.seed_runs(r)]
         if not lams or not zero or len(runs) < sum(r["seeds"] for r in lams + zero):
             found += [c for c in earlier if c.get("part") == part]
             continue
@@ -264,14 +273,16 @@ def lambda_claims(table: list[dict], earlier: list[dict]) -> list[dict]:
 
 def paper_task(args: PaperTask) -> list[dict]:
     """Run the parts in order, then write the summary; returns its rows."""
-    for part in PARTS:
-        if part in args.parts:
-            print(f"paper-task: part {part} -> {args.out / part}", flush=True)
-            train(part_args(args, part))
-            if args.greedy:
-                evaluate_greedy(args.out / part, args.eval_episodes)
-            else:  # an earlier one would describe parameters this part may have left
-                (args.out / part / GREEDY).unlink(missing_ok=True)
+
+    def greedy(part: str, _record: dict, _seconds: float) -> None:
+        if args.greedy:
+            evaluate_greedy(args.out / part, args.eval_episodes)
+        else:  # an earlier one would describe parameters this part may have left
+            (args.out / part / GREEDY).unlink(missing_ok=True)
+
+    header = "paper-task: part {part} -> {folder}"
+    build = lambda part: build_part(args, part)  # noqa: E731
+    run_parts(PLAN, args.parts, build, sweep_options(args), args.out, header, greedy)
     table = summarise(args)
     for r in table:
         name = "λ 0" if r["budget"] is None else f"budget {r['budget']:g}"

@@ -11,8 +11,10 @@ where ``stats[metric] = {"mean", "ci_low", "ci_high", "iqm", "n"}`` is computed 
 (:func:`sparsecomm.stats.bootstrap_ci`) and the interquartile mean. Lambdas are floats.
 
 The claims (SPEC section 7) are decided by the explicit rules of :func:`decide_claims`, whose
-thresholds are the module constants below. Read by the report of :mod:`sparsecomm.reproduce` and
-by the budget-matched verdicts of :mod:`sparsecomm.frontier`.
+thresholds are the module constants below. Read by the report of
+:mod:`sparsecomm.pipelines.report`, by the budget-matched verdicts of
+:mod:`sparsecomm.pipelines.frontier` and by ``sparsecomm paper-task``'s claims at the paper's
+lambdas.
 """
 
 from __future__ import annotations

@@ -1,23 +1,24 @@
-"""The bit-budget frontier: success against bits, per budget and per lambda (docs/budget.md).
+"""The bit-budget frontier: success against bits, per budget and per lambda (docs/budget.md,
+docs/wire.md), from rows of :mod:`sparsecomm.pipelines.rows`.
 
-Reads the ``results.json`` of trained sweeps (``sparsecomm train|imitate --budgets ...``, or the
-``rl_budget`` / ``il_budget`` parts of ``sparsecomm reproduce``) and writes
-
-- ``summary.json``: a list of rows ``{"learner": "rl"|"imitation", "budget": float|null,
-  "lam": float, "seeds": int, "success": [mean, lo, hi], "payload_bits": [...],
-  "wire_bits": [...], "episode_length": [...]}``, one per (learner, budget, lambda) group, over
-  its seeds (95% CIs of :func:`sparsecomm.stats.bootstrap_ci`), and a ``"series"`` field where
-  the sweep was given a name (say ``"small task, oracle"``: runs of one learner on different
-  tasks or experts are separate series, each compared with its own lambda-0 row);
-- ``frontier.png``: success against payload bits and against wire bits per step, budgets joined
-  by a line, fixed-lambda points beside them;
+- :func:`plot`: success against payload and wire bits per step, budgets joined by a line,
+  fixed-lambda points beside them; :func:`plot_wire`: success and the share of link-steps that
+  speak against wire bits, one point per row;
 - the budget-matched verdicts of the paper's claims 4 and 5 (:func:`budget_claims`) and the
-  budget targets (:func:`targets`), for the report.
+  budget targets (:func:`targets`), for the reports.
 
-Command line (the numbers of docs/budget.md)::
+Command line (the numbers of docs/budget.md and docs/wire.md)::
 
-    python -m sparsecomm.frontier --rl RUN/results.json --il RUN/results.json --out FOLDER
-    python -m sparsecomm.frontier --il "small task, oracle=RUN/results.json" ...  # a named series
+    python -m sparsecomm.pipelines.frontier --rl RUN/results.json --il RUN/results.json --out F
+    python -m sparsecomm.pipelines.frontier --il "small task, oracle=RUN/results.json" ...
+    python -m sparsecomm.pipelines.frontier --task small --rl RUN/eval.json --out F
+
+Without ``--task`` it writes ``summary.json`` (rows of the plain form, each sweep in the series
+``SERIES=`` names) and ``frontier.png`` (:func:`plot`). With ``--task`` the rows are of the wire
+form (each file read inside its run folder), replace the rows of the same
+:func:`~sparsecomm.pipelines.rows.row_key` in ``--out``'s ``summary.json`` and the others stay;
+``--deployed BUDGET=DEPLOY_JSON`` adds a deployment's measured figures to the new rows of that
+budget (``none``: the lambda-0 rows), and ``frontier.png`` is :func:`plot_wire`'s.
 """
 
 from __future__ import annotations
@@ -28,38 +29,18 @@ from pathlib import Path
 
 import numpy as np
 
-from sparsecomm.claims import BITS_FACTOR, IL_MIN_SUCCESS, IL_SUCCESS_TOL, keeps_performance
-from sparsecomm.jsonfile import write_json
-from sparsecomm.stats import bootstrap_ci
+from sparsecomm.pipelines import rows as rowlib
+from sparsecomm.pipelines.claims import (
+    BITS_FACTOR,
+    IL_MIN_SUCCESS,
+    IL_SUCCESS_TOL,
+    keeps_performance,
+)
 
-COLUMNS = {
-    "success": "success_rate",
-    "payload_bits": "bits_per_step",
-    "wire_bits": "wire_bits_per_step",
-    "episode_length": "episode_length",
-}
-"""Row field -> the evaluation metric it summarises."""
 TARGET_BUDGET, STRETCH_BUDGET = 16.0, 8.0
 """The default target (docs/budget.md): budget 16 at >= ``TARGET_SUCCESS`` of lambda 0's success
 with final bits within ``TARGET_BITS_TOL`` of the budget; stretch: budget 8 at the same success."""
 TARGET_SUCCESS, TARGET_BITS_TOL = 0.95, 0.10
-
-
-def rows(results: dict, learner: str, series: str | None = None) -> list[dict]:
-    """The frontier rows of one sweep's ``results.json`` (its ``runs`` list), in ``series`` if
-    given."""
-    groups: dict[tuple, list[dict]] = {}
-    for run in results["runs"]:
-        groups.setdefault((run.get("budget"), float(run["lam"])), []).append(run)
-    out = []
-    for (budget, lam), runs in groups.items():
-        row = {"learner": learner, "budget": budget, "lam": lam, "seeds": len(runs)}
-        if series is not None:
-            row["series"] = series
-        for name, metric in COLUMNS.items():
-            row[name] = list(bootstrap_ci([r[metric] for r in runs]))
-        out.append(row)
-    return out
 
 
 def series_of(table: list[dict]) -> list[tuple[str, str | None]]:
@@ -83,9 +64,10 @@ def label(learner: str, series: str | None) -> str:
 
 
 def _stats(row: dict) -> dict:
-    """A row in the ``{metric: {mean, ci_low, ci_high}}`` form of :mod:`sparsecomm.claims`."""
+    """A row in the ``{metric: {mean, ci_low, ci_high}}`` form of
+    :mod:`sparsecomm.pipelines.claims`."""
     return {
-        COLUMNS[name]: dict(zip(("mean", "ci_low", "ci_high"), row[name], strict=True))
+        rowlib.COLUMNS[name]: dict(zip(("mean", "ci_low", "ci_high"), row[name], strict=True))
         for name in ("success", "episode_length")
     }
 
@@ -94,7 +76,8 @@ def budget_claims(table: list[dict]) -> list[dict]:
     """Claims 4 (RL) and 5 (imitation) judged at budget-matched points, labelled as such.
 
     Claim 4 at budgets: some budget sends <= 1/``BITS_FACTOR`` of lambda 0's payload bits while
-    keeping its success rate and episode length (:func:`sparsecomm.claims.keeps_performance`).
+    keeping its success rate and episode length
+    (:func:`sparsecomm.pipelines.claims.keeps_performance`).
     Claim 5 at budgets (its sparse half; the collapse half is a property of a fixed lambda): the
     imitation reference reaches ``IL_MIN_SUCCESS`` and some budget sends <= 1/``BITS_FACTOR`` of
     its bits losing at most ``IL_SUCCESS_TOL`` success.
@@ -258,11 +241,42 @@ def _plot_series(ax, rows: list[dict], bits: str, colour: str, index: int, tagge
             )
 
 
-def write_rows(table: list[dict], path: str | Path) -> Path:
-    """The rows as JSON (non-finite numbers as null)."""
-    path = Path(path)
-    write_json(path, table)
-    return path
+def plot_wire(table: list[dict], out_png: str | Path) -> Path:
+    """Success and the share of link-steps that speak against wire bits per step (log axis),
+    one point per row of the wire form, 95% CIs as error bars."""
+    import matplotlib
+    import matplotlib.ticker
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for r in table:
+        name = "λ 0" if r["budget"] is None else f"{r['counts']} {r['budget']:g}"
+        name = f"{r['task']}, {r['learner']}: {name}"
+        if r.get("news_margin") is not None:
+            name += " (news)"
+        x, y, s = r["wire_bits"], r["success"], r["speaking_fraction"]
+        axes[0].errorbar(
+            x[0], y[0], xerr=[[x[0] - x[1]], [x[2] - x[0]]], yerr=[[y[0] - y[1]], [y[2] - y[0]]],
+            fmt="o", capsize=3, label=name,
+        )  # fmt: skip
+        axes[1].errorbar(
+            x[0], s[0], xerr=[[x[0] - x[1]], [x[2] - x[0]]], yerr=[[s[0] - s[1]], [s[2] - s[0]]],
+            fmt="o", capsize=3, label=name,
+        )  # fmt: skip
+    axes[0].set(xlabel="wire bits per step", ylabel="success rate", xscale="log")
+    axes[1].set(xlabel="wire bits per step", ylabel="link-steps that speak", xscale="log")
+    for ax in axes:  # plain numbers on the log axis, at round values
+        ax.set_xticks([16, 24, 32, 48, 64, 128, 256])
+        ax.xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    out_png = Path(out_png)
+    fig.savefig(out_png, dpi=120)
+    plt.close(fig)
+    return out_png
 
 
 def write(out: str | Path, sources: dict[str, list]) -> list[dict]:
@@ -274,28 +288,45 @@ def write(out: str | Path, sources: dict[str, list]) -> list[dict]:
     for learner, docs in sources.items():
         for doc in docs:
             series, doc = doc if isinstance(doc, tuple) else (None, doc)
-            table += rows(doc, learner, series)
-    write_rows(table, out / "summary.json")
+            table += rowlib.rows(doc, learner, series)
+    rowlib.write_rows(table, out / "summary.json")
     plot(table, out / "frontier.png")
     return table
 
 
-def _read(arg: str) -> tuple[str | None, dict]:
-    """``PATH`` or ``SERIES=PATH`` as ``(series, results)``."""
+def write_wire(out: str | Path, new: list[dict]) -> list[dict]:
+    """``summary.json`` in ``out`` with the rows ``new`` in place of the rows of the same key
+    (the others kept), and ``frontier.png`` (:func:`plot_wire`) of the whole table."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    summary = out / "summary.json"
+    table = rowlib.load_rows(summary) if summary.exists() else []
+    keys = {rowlib.row_key(r) for r in new}
+    table = [r for r in table if rowlib.row_key(r) not in keys] + new
+    rowlib.write_rows(table, summary)
+    plot_wire(table, out / "frontier.png")
+    return table
+
+
+def _split(arg: str) -> tuple[str | None, str]:
+    """``PATH`` or ``SERIES=PATH`` as ``(series, path)``."""
     series, _, path = arg.rpartition("=")
-    return series or None, json.loads(Path(path).read_text())
+    return series or None, path
 
 
-def main(argv: list[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument(
-        "--rl", nargs="*", default=[], help="results.json of RL sweeps (SERIES=PATH names a series)"
-    )
-    parser.add_argument("--il", nargs="*", default=[], help="... of imitation sweeps")
-    parser.add_argument("--out", required=True, help="folder for summary.json and frontier.png")
-    args = parser.parse_args(argv)
-    sources = {"rl": [_read(p) for p in args.rl], "imitation": [_read(p) for p in args.il]}
-    table = write(args.out, sources)
+def _print_wire(new: list[dict]) -> None:
+    for r in new:
+        name = "λ 0" if r["budget"] is None else f"{r['counts']} budget {r['budget']:g}"
+        net = "-" if r["network_bits"] is None else f"{r['network_bits'][0]:.0f}"
+        print(
+            f"{r['task']} {r['learner']} {name}: success {r['success'][0]:.3f} "
+            f"[{r['success'][1]:.3f}, {r['success'][2]:.3f}], length {r['episode_length'][0]:.1f}, "
+            f"payload {r['payload_bits'][0]:.1f}, wire {r['wire_bits'][0]:.1f}, speaking "
+            f"{r['speaking_fraction'][0]:.0%}, network {net} ({r['seeds']} seeds)"
+        )
+
+
+def _print_plain(table: list[dict]) -> None:
     for r in table:
         print(
             f"{label(r['learner'], r.get('series')):9s} {_describe(r)}, "
@@ -309,6 +340,55 @@ def main(argv: list[str] | None = None) -> None:
             f"{'met' if t['met'] else 'not met'}"
             f" (success {t['success_ratio']:.1%} of λ=0, bits {t['bits']:.3g})"
         )
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument(
+        "--rl", nargs="*", default=[], help="results.json (or eval.json) of RL sweeps; "
+        "SERIES=PATH names a series",
+    )  # fmt: skip
+    parser.add_argument("--il", nargs="*", default=[], help="... of imitation sweeps")
+    parser.add_argument(
+        "--task", choices=rowlib.TASKS, help="rows of the wire form, each file read inside its run "
+        "folder, merged into --out's summary.json",
+    )  # fmt: skip
+    parser.add_argument(
+        "--deployed", nargs="*", default=[], help="with --task, BUDGET=DEPLOY_JSON: a deployment "
+        "(sparsecomm deploy's deploy.json) of the runs of the group with this budget (none: the "
+        "lambda-0 group)",
+    )  # fmt: skip
+    parser.add_argument("--out", required=True, help="folder for summary.json and frontier.png")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    sources = {"rl": args.rl, "imitation": args.il}
+    if args.deployed and args.task is None:
+        parser.error("--deployed needs --task")
+    if args.task is None:
+        docs = {
+            learner: [(s, json.loads(Path(p).read_text())) for s, p in map(_split, paths)]
+            for learner, paths in sources.items()
+        }
+        _print_plain(write(args.out, docs))
+        return
+    new = [
+        row
+        for learner, paths in sources.items()
+        for series, path in map(_split, paths)
+        for row in rowlib.read_rows(path, learner, series, task=args.task)
+    ]
+    for spec in args.deployed:
+        budget, _, report = spec.partition("=")
+        want = None if budget == "none" else float(budget)
+        for r in new:
+            if r["budget"] == want:
+                r["deployed"] = rowlib.deployed(json.loads(Path(report).read_text()))
+    write_wire(args.out, new)
+    _print_wire(new)
 
 
 if __name__ == "__main__":

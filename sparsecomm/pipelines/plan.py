@@ -1,0 +1,84 @@
+"""A pipeline's plan: its parts, each a folder under the command's ``out``, and what a trained
+part runs (a :class:`Sweep`); the paper's lambdas and budgets, which both commands sweep.
+
+A command lists its parts in order (:class:`Part`: the name, and the learner and series of the
+part's rows in the frontier) and builds each one when its turn comes (a part may need an earlier
+part's teams): a :class:`Sweep`, or a function for a part that trains nothing.
+:mod:`sparsecomm.pipelines.runner` runs the plan.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from sparsecomm.configs import ILConfig, RLConfig
+from sparsecomm.jsonfile import read_json
+
+RL_LAMS = (0.01, 0.005, 0.001, 0.0)
+"""Paper, section V: the RL penalty weights."""
+IL_LAMS = (0.001, 0.0007, 0.0004, 0.0001, 0.0)
+"""Paper, section V and Table I: the imitation penalty weights (0 added as the reference)."""
+BUDGETS = (64.0, 32.0, 16.0, 8.0, 4.0)
+"""The bit budgets of the frontier (payload bits per step; lambda 0 sends ~160; docs/budget.md)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Part:
+    """One part of a plan."""
+
+    name: str
+    """The part, and its folder under ``out``."""
+    learner: str | None = None
+    """The learner of the part's rows (``"rl"`` or ``"imitation"``); None: no frontier rows."""
+    series: str | None = None
+    """The series of its rows (compared with the series' own lambda 0); None: the learner's."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Sweep:
+    """What a trained part runs: one learner over seeds x lambdas x budgets, one vmapped program
+    through :func:`sparsecomm.experiment.train`."""
+
+    config: RLConfig | ILConfig
+    """The learner (an ``ILConfig``: imitation)."""
+    lams: tuple[float, ...] = (0.0,)
+    """Penalty weights."""
+    budgets: tuple[float | None, ...] = ()
+    """Bit budgets (None: a lambda-0 reference in the same program); () : lambdas only."""
+    record: tuple[tuple[str, object], ...] = ()
+    """Entries the part's record (:meth:`budget`) adds to the sweep's own."""
+
+    @property
+    def imitate(self) -> bool:
+        return isinstance(self.config, ILConfig)
+
+    def budget(self, seeds: int) -> dict:
+        """The part's training budget, for ``timings.json``."""
+        c = self.config
+        return {
+            "seeds": seeds,
+            "lams": [float(x) for x in self.lams],
+            "num_updates": c.num_updates,
+            "episodes_per_update": c.num_envs,
+            "env_steps_per_run": c.num_updates * c.num_envs * c.env.max_steps,
+        } | dict(self.record)
+
+
+def expert_index(run: Path) -> int:
+    """The expert of imitation of an RL team: the index (in ``run``'s sweep) of the lambda-0
+    team without a budget with the highest final success, ties broken by the shortest
+    episodes."""
+    res = read_json(run / "results.json")
+    if res is None:
+        raise ValueError(
+            f"the il_budget_rl part needs the rl part's teams in {run}: run 'rl' first"
+        )
+    runs = [
+        (i, r)
+        for i, r in enumerate(res["runs"])
+        if float(r["lam"]) == 0.0 and r.get("budget") is None
+    ]
+    if not runs:
+        raise ValueError(f"the rl part in {run} has no lambda = 0 runs")
+    return min(runs, key=lambda p: (-p[1]["success_rate"], p[1]["episode_length"]))[0]
