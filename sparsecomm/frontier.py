@@ -28,15 +28,17 @@ from pathlib import Path
 
 import numpy as np
 
+from sparsecomm import learners
 from sparsecomm.claims import BITS_FACTOR, IL_MIN_SUCCESS, IL_SUCCESS_TOL, keeps_performance
 from sparsecomm.jsonfile import write_json
+from sparsecomm.metric_names import aliased_results
 from sparsecomm.stats import bootstrap_ci
 
 COLUMNS = {
-    "success": "success_rate",
-    "payload_bits": "bits_per_step",
-    "wire_bits": "wire_bits_per_step",
-    "episode_length": "episode_length",
+    "success": "episode/success_rate",
+    "payload_bits": "channel/bits_per_step",
+    "wire_bits": "channel/wire_bits_per_step",
+    "episode_length": "episode/episode_length",
 }
 """Row field -> the evaluation metric it summarises."""
 TARGET_BUDGET, STRETCH_BUDGET = 16.0, 8.0
@@ -49,7 +51,7 @@ def rows(results: dict, learner: str, series: str | None = None) -> list[dict]:
     """The frontier rows of one sweep's ``results.json`` (its ``runs`` list), in ``series`` if
     given."""
     groups: dict[tuple, list[dict]] = {}
-    for run in results["runs"]:
+    for run in aliased_results(results)["runs"]:
         groups.setdefault((run.get("budget"), float(run["lam"])), []).append(run)
     out = []
     for (budget, lam), runs in groups.items():
@@ -101,7 +103,7 @@ def budget_claims(table: list[dict]) -> list[dict]:
     """
     out = []
     for learner, series in series_of(table):
-        number = 4 if learner == "rl" else 5
+        number = 4 if learner == learners.RL.name else 5
         ref = reference(table, learner, series)
         budgets = [r for r in _in(table, learner, series) if r["budget"] is not None]
         if ref is None or not budgets:
@@ -294,7 +296,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--il", nargs="*", default=[], help="... of imitation sweeps")
     parser.add_argument("--out", required=True, help="folder for summary.json and frontier.png")
     args = parser.parse_args(argv)
-    sources = {"rl": [_read(p) for p in args.rl], "imitation": [_read(p) for p in args.il]}
+    sources = {
+        learners.RL.name: [_read(p) for p in args.rl],
+        learners.IMITATION.name: [_read(p) for p in args.il],
+    }
     table = write(args.out, sources)
     for r in table:
         print(

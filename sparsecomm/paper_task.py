@@ -44,7 +44,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from sparsecomm import claims, frontier, wire_frontier
+from sparsecomm import claims, frontier, learners, wire_frontier
 from sparsecomm.channel import ChannelConfig
 from sparsecomm.configs import PRESETS, ILConfig, RLConfig, check_budget_fits
 from sparsecomm.experiment import Imitate, Train, evaluate_runs, train
@@ -62,7 +62,7 @@ NEWS = ChannelConfig(link_gate=True, on_silence="hold", news_margin=0.1)
 sender would say and what its recipient holds), a silent link held by its recipient; payload
 prices and budgets as the paper's. The ``silent`` preset's links (docs/wire.md) with the paper's
 frame check; chosen on tuning seeds 1000-1001 (docs/paper-task.md, links that fall silent, RL)."""
-_FAST_RL = PRESETS["paper_fast"]["train"]
+_FAST_RL = PRESETS["paper_fast"][learners.RL.command]
 GOALS, MAX_LENGTH_RATIO = (32.0, 16.0), 1.25
 """The paper task's targets: budget 32, then the stretch 16, with episodes at most 1.25x lambda
 0's."""
@@ -101,7 +101,7 @@ class PaperTask:
     and 6000 updates (96,000 episodes per run). ours: the preset's learner tuned on seeds
     1000-1003, the update count and the bonus from the verdicts on seeds 0-19
     (docs/paper-task.md)."""
-    il: ILConfig = dataclasses.replace(PRESETS["paper"]["imitate"], channel=NEWS)
+    il: ILConfig = dataclasses.replace(PRESETS["paper"][learners.IMITATION.command], channel=NEWS)
     """The imitation learner: the ``paper`` preset (the settings with which docs/budget.md
     confirmed the bounded relief on this task) with the ``rl`` part's links that fall silent but
     speak on news (:data:`NEWS`); its expert is set by the part. ours: tuned on seeds 1000-1001
@@ -207,7 +207,7 @@ def summarise(args: PaperTask) -> list[dict]:
         path = args.out / part / RESULTS
         if not path.exists():
             continue
-        learner = "rl" if part.startswith("rl") else "imitation"
+        learner = (learners.RL if part.startswith("rl") else learners.IMITATION).name
         rows = wire_frontier.read_rows(path, "paper", learner)
         rows = with_greedy(rows, args.out / part, "paper", learner)
         found[part] = [row | {"part": part, "series": SERIES.get(part)} for row in rows]
@@ -235,8 +235,8 @@ def summarise(args: PaperTask) -> list[dict]:
 
 
 LAMBDA_CLAIMS = (
-    ("rl_lams", "rl", "rl", claims.claim_sparse_rl),
-    ("il_lams", "il_oracle", "imitation", claims.claim_imitation),
+    ("rl_lams", "rl", learners.RL.name, claims.claim_sparse_rl),
+    ("il_lams", "il_oracle", learners.IMITATION.name, claims.claim_imitation),
 )
 """Each ``*_lams`` part, the part whose lambda-0 runs are its reference, the learner's name in
 :mod:`sparsecomm.claims` and the claim that judges them (4 and 5)."""

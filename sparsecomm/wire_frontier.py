@@ -43,20 +43,21 @@ from pathlib import Path
 
 import numpy as np
 
-from sparsecomm import runfolder
+from sparsecomm import learners, runfolder
 from sparsecomm.deploy.wire import HEADER_BYTES, UDP_IP_BYTES
 from sparsecomm.jsonfile import write_json
+from sparsecomm.metric_names import aliased_results
 from sparsecomm.stats import bootstrap_ci, curves, first_pass, read_csv
 from sparsecomm.sweep import WALL_CSV
 
 TASKS = ("small", "paper")
-LEARNERS = ("rl", "imitation")
+LEARNERS = tuple(learners.KINDS)
 COLUMNS = {
-    "success": "success_rate",
-    "episode_length": "episode_length",
-    "payload_bits": "bits_per_step",
-    "wire_bits": "wire_bits_per_step",
-    "speaking_fraction": "speaking_fraction",
+    "success": "episode/success_rate",
+    "episode_length": "episode/episode_length",
+    "payload_bits": "channel/bits_per_step",
+    "wire_bits": "channel/wire_bits_per_step",
+    "speaking_fraction": "channel/speaking_fraction",
 }
 """Row field -> the evaluation metric it summarises."""
 DATAGRAM_HEADER_BITS = 8 * (HEADER_BYTES + UDP_IP_BYTES)
@@ -76,7 +77,7 @@ def time_to_target(folder: str | Path) -> dict[tuple, tuple[float | None, float 
     if not (folder / "metrics.csv").exists():
         return {}
     wall = read_csv(folder / WALL_CSV) if (folder / WALL_CSV).exists() else None
-    success = curves(read_csv(folder / "metrics.csv"), "success_rate")
+    success = curves(read_csv(folder / "metrics.csv"), "episode/success_rate")
     out = {}
     for (budget, lam), (steps, vals) in success.items():
         key = (None if np.isnan(budget) else float(budget), float(lam))
@@ -96,19 +97,21 @@ def time_to_target(folder: str | Path) -> dict[tuple, tuple[float | None, float 
 def learner_of(config, learner: str) -> dict:
     """The row fields that say which learner made a group: ``algo``, ``expert``,
     ``episodes_per_update``."""
-    if learner == "rl":
-        return {"algo": config.algo, "expert": None, "episodes_per_update": config.num_envs}
-    algo = "dagger" if config.beta_end < config.beta_start else "bc"
-    expert = "oracle" if config.expert == "oracle" else "rl"
+    kind = learners.named(learner)
+    algo = kind.algo_of(config)
+    if kind is learners.RL:
+        return {"algo": algo, "expert": None, "episodes_per_update": config.num_envs}
+    expert = "oracle" if config.expert == "oracle" else learners.RL.name
     return {"algo": algo, "expert": expert, "episodes_per_update": config.num_envs}
 
 
 def network_bits(run: dict) -> float | None:
-    """Bits per step on a network of unicast links for one evaluated run (``None`` when the
-    evaluation has no datagram counts)."""
-    if "datagrams_per_step" not in run or "datagram_bits_per_step" not in run:
+    """Bits per step on a network of unicast links for one evaluated run, its metrics by
+    written name (``None`` when the evaluation has no datagram counts)."""
+    datagrams, bits = "channel/datagrams_per_step", "channel/datagram_bits_per_step"
+    if datagrams not in run or bits not in run:
         return None
-    return run["datagram_bits_per_step"] + DATAGRAM_HEADER_BITS * run["datagrams_per_step"]
+    return run[bits] + DATAGRAM_HEADER_BITS * run[datagrams]
 
 
 def rows(results: dict, config, task: str, learner: str, times: dict | None = None) -> list[dict]:
@@ -119,7 +122,7 @@ def rows(results: dict, config, task: str, learner: str, times: dict | None = No
     if learner not in LEARNERS:
         raise ValueError(f"learner must be one of {LEARNERS}, got {learner!r}")
     groups: dict[tuple, list[dict]] = {}
-    for run in results["runs"]:
+    for run in aliased_results(results)["runs"]:
         groups.setdefault((run.get("budget"), float(run["lam"])), []).append(run)
     out = []
     for (budget, lam), runs in groups.items():

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from sparsecomm import claims, frontier
+from sparsecomm import claims, frontier, learners
 from sparsecomm.jsonfile import read_json
 from sparsecomm.reproduce.plan import BASELINE_LABELS, PARTS
 from sparsecomm.reproduce.provenance import git_commit
@@ -50,11 +50,11 @@ def collect(out: Path) -> dict:
         summary["training_success"] = auc
     # (part, learner, series): each series is judged against its own lambda 0.
     budget_parts = (
-        ("rl", "rl", None),
-        ("rl_budget", "rl", None),
-        ("imitation", "imitation", None),
-        ("il_budget", "imitation", None),
-        ("il_budget_rl", "imitation", "RL team"),
+        ("rl", learners.RL.name, None),
+        ("rl_budget", learners.RL.name, None),
+        ("imitation", learners.IMITATION.name, None),
+        ("il_budget", learners.IMITATION.name, None),
+        ("il_budget_rl", learners.IMITATION.name, "RL team"),
     )
     if any((out / part).exists() for part in ("rl_budget", "il_budget", "il_budget_rl")):
         summary["frontier"] = [
@@ -75,13 +75,23 @@ def _points(summary: dict) -> list[dict]:
         for lam, st in summary.get(part, {}).items():
             pts.append(
                 {"label": f"λ={lam:g}", "group": group}
-                | {m: tup(st, m) for m in ("bits_per_step", "success_rate", "group_reward")}
+                | {
+                    m: tup(st, m)
+                    for m in (
+                        "channel/bits_per_step",
+                        "episode/success_rate",
+                        "episode/group_reward",
+                    )
+                }
             )
     for name, st in summary.get("baselines", {}).items():
         label = BASELINE_LABELS[name]
         pts.append(
             {"label": label, "group": label}
-            | {m: tup(st, m) for m in ("bits_per_step", "success_rate", "group_reward")}
+            | {
+                m: tup(st, m)
+                for m in ("channel/bits_per_step", "episode/success_rate", "episode/group_reward")
+            }
         )
     return pts
 
@@ -95,13 +105,16 @@ def write_figures(out: Path, summary: dict) -> list[Path]:
             plot_curves(
                 rl_csv,
                 out / "fig1.png",
-                ("group_reward", "episode_length"),
+                ("episode/group_reward", "episode/episode_length"),
                 title="Fig. 1: RL through the channel, group reward and episode length",
             )
         )
         made.append(
             plot_curves(
-                rl_csv, out / "fig2.png", ("bits_per_step",), title="Fig. 2: RL, bits per step"
+                rl_csv,
+                out / "fig2.png",
+                ("channel/bits_per_step",),
+                title="Fig. 2: RL, bits per step",
             )
         )
     if il_csv.exists():
@@ -109,7 +122,7 @@ def write_figures(out: Path, summary: dict) -> list[Path]:
             plot_curves(
                 il_csv,
                 out / "fig3.png",
-                ("imitation_loss", "bits_per_step"),
+                ("loss/imitation_loss", "channel/bits_per_step"),
                 title="Fig. 3: imitation of the oracle, loss and bits per step",
             )
         )

@@ -14,6 +14,7 @@ from sparsecomm.configs import ChannelConfig, ILConfig, RLConfig, from_dict
 from sparsecomm.envs.oracle import center_actions, oracle_actions, run_policy_episodes
 from sparsecomm.experiment import EVAL_SEED_OFFSET, Imitate, Train, evaluate_runs, train
 from sparsecomm.jsonfile import read_json, write_json
+from sparsecomm.metric_names import aliased_results, written_row
 from sparsecomm.reproduce.plan import PARTS, Reproduce
 from sparsecomm.rl import make_train
 from sparsecomm.sharding import is_primary
@@ -88,12 +89,14 @@ def expert_index(run: Path) -> int:
         )
     runs = [
         (i, r)
-        for i, r in enumerate(res["runs"])
+        for i, r in enumerate(aliased_results(res)["runs"])
         if float(r["lam"]) == 0.0 and r.get("budget") is None
     ]
     if not runs:
         raise ValueError(f"the rl part in {run} has no lambda = 0 runs")
-    return min(runs, key=lambda p: (-p[1]["success_rate"], p[1]["episode_length"]))[0]
+    return min(runs, key=lambda p: (-p[1]["episode/success_rate"], p[1]["episode/episode_length"]))[
+        0
+    ]
 
 
 def run_fixed(args: Reproduce, out: Path) -> dict:
@@ -141,18 +144,15 @@ def run_scripted(args: Reproduce, out: Path) -> dict:
         for s in range(seeds):
             key = jax.random.key(args.rl.seed + EVAL_SEED_OFFSET + s)
             st = run_policy_episodes(key, env, policy, episodes)
-            runs.append(
-                {
-                    "seed": s,
-                    "lam": 0.0,
-                    "success_rate": float(np.mean(st.success)),
-                    "episode_length": float(np.mean(st.length)),
-                    "group_reward": float(np.mean(st.group_reward)),
-                    "bits_per_step": 0.0,
-                    "wire_bits_per_step": 0.0,
-                    "penalty": 0.0,
-                }
-            )
+            metrics = {
+                "success_rate": float(np.mean(st.success)),
+                "episode_length": float(np.mean(st.length)),
+                "group_reward": float(np.mean(st.group_reward)),
+                "bits_per_step": 0.0,
+                "wire_bits_per_step": 0.0,
+                "penalty": 0.0,
+            }
+            runs.append({"seed": s, "lam": 0.0, **written_row(metrics)})
         doc = {"policy": policy.__name__, "episodes_per_run": episodes, "runs": runs}
         write_json(folder / name, doc)
     return {"seeds": seeds, "episodes_per_seed": episodes}
