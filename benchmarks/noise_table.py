@@ -115,12 +115,13 @@ def main(args: Args) -> list[dict]:
                     **{k: m[k] for k in m},
                 }
                 rows.append(row)
-                s = m["success_rate"]
+                s = m["episode/success_rate"]
                 print(
                     f"{folder} {group:>10} | {name:>17}: success {s['mean']:.3f} "
                     f"[{s['ci_low']:.3f}, {s['ci_high']:.3f}] length "
-                    f"{m['episode_length']['mean']:.1f} bits {m['bits_per_step']['mean']:.1f} "
-                    f"lost/step {m.get('packets_lost_per_step', {'mean': 0.0})['mean']:.2f}"
+                    f"{m['episode/episode_length']['mean']:.1f} "
+                    f"bits {m['channel/bits_per_step']['mean']:.1f} "
+                    f"lost/step {m.get('channel/packets_lost_per_step', {'mean': 0.0})['mean']:.2f}"
                 )
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -138,7 +139,7 @@ def figure(rows: list[dict], path: Path) -> None:
     for i, (run, group) in enumerate(lines):
         sel = {r["setting"]: r for r in rows if (r["run"], r["group"]) == (run, group)}
         x = [j + 0.08 * (i - len(lines) / 2) for j, s in enumerate(settings) if s in sel]
-        s = [sel[name]["success_rate"] for name in settings if name in sel]
+        s = [sel[name]["episode/success_rate"] for name in settings if name in sel]
         mean = [v["mean"] for v in s]
         err = [[v["mean"] - v["ci_low"] for v in s], [v["ci_high"] - v["mean"] for v in s]]
         ax.errorbar(x, mean, yerr=err, fmt="o-", capsize=3, label=f"{Path(run).name} {group}")

@@ -31,6 +31,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import tyro  # noqa: E402
 
+from sparsecomm.metric_names import alias, aliased_results  # noqa: E402
 from sparsecomm.stats import bootstrap_ci, read_csv, smooth  # noqa: E402
 
 LINE = re.compile(
@@ -88,10 +89,10 @@ def arm(folder: Path) -> dict:
     cfg = json.loads((folder / "checkpoint" / "config.json").read_text())
     cfg = cfg.get("config", cfg)
     k = cfg["env"]["num_agents"]
-    runs = json.loads((folder / "results.json").read_text())["runs"]
+    runs = aliased_results(json.loads((folder / "results.json").read_text()))["runs"]
     out = {"name": folder.name, "K": k, "seeds": len(runs), "updates": cfg["num_updates"]}
     for metric in ("success_rate", "group_reward", "bits_per_step", "links_per_step"):
-        vals = np.array([r.get(metric, np.nan) for r in runs], float)
+        vals = np.array([r.get(alias(metric), np.nan) for r in runs], float)
         if metric == "bits_per_step":
             metric, vals = "bits_per_agent_step", vals / k
         if np.isnan(vals).all():
@@ -123,11 +124,11 @@ def learning_row(folder: Path, seeds: tuple[int, ...] = ()) -> dict:
     ``seed_list`` (the seeds kept), ``updates`` and ``device`` (where it trained)."""
     meta, keep = _kept(folder, seeds)
     cfg = meta["config"]
-    results = json.loads((folder / "results.json").read_text())
+    results = aliased_results(json.loads((folder / "results.json").read_text()))
     runs = [results["runs"][s] for s in keep]
 
     def metric(name):
-        return _ci(np.array([r[name] for r in runs], float))
+        return _ci(np.array([r[alias(name)] for r in runs], float))
 
     return {
         "K": cfg["env"]["num_agents"],
@@ -220,7 +221,7 @@ def each_report(
     for f, r in zip(folders, new, strict=True):
         c = read_csv(f / "metrics.csv")
         kept = _kept(f, seeds)[1]
-        per_seed = [c["success_rate"][c["seed"] == s] for s in kept]
+        per_seed = [c["episode/success_rate"][c["seed"] == s] for s in kept]
         n = min(len(v) for v in per_seed)
         mean = np.mean([v[:n] for v in per_seed], 0)
         label = f"K = {r['K']}, {'talking' if r['comm'] else 'silent'} ({r['seeds']} seeds)"
@@ -229,7 +230,8 @@ def each_report(
         line = ax[1].plot(np.arange(1, n + 1), smooth(mean, 25), label=label)[0]
         if r["comm"]:
             per_link = [
-                (c["bits_per_step"] / c["links_per_step"])[c["seed"] == s][:n] for s in kept
+                (c["channel/bits_per_step"] / c["channel/links_per_step"])[c["seed"] == s][:n]
+                for s in kept
             ]
             ax[2].plot(
                 np.arange(1, n + 1), smooth(np.mean(per_link, 0), 25), color=line.get_color()
@@ -308,7 +310,7 @@ def main(a: Args) -> None:
                 continue  # a prefix of a longer run of the same arm: its curve is drawn there
             c = r["curves"]
             for i, metric in enumerate(("group_reward", "success_rate", "bits_per_step")):
-                per_seed = [c[metric][c["seed"] == s] for s in np.unique(c["seed"])]
+                per_seed = [c[alias(metric)][c["seed"] == s] for s in np.unique(c["seed"])]
                 n = min(len(v) for v in per_seed)
                 mean = np.mean([v[:n] for v in per_seed], 0)
                 if metric != "success_rate":

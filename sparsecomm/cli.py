@@ -18,6 +18,7 @@ import sys
 import typing
 from pathlib import Path
 
+from sparsecomm import learners
 from sparsecomm.codestats import FitCode, fit_code
 from sparsecomm.configs import PRESETS
 from sparsecomm.deploy.args import Deploy
@@ -51,8 +52,8 @@ def _take(flag: str, argv: list[str]) -> tuple[str | None, list[str]]:
 
 
 COMMANDS = {
-    "train": (Train, train),
-    "imitate": (Imitate, train),
+    learners.RL.command: (Train, train),
+    learners.IMITATION.command: (Imitate, train),
     "eval": (Eval, evaluate),
     "render": (Render, render),
     "export": (Export, export_team),
@@ -90,7 +91,7 @@ def parse(argv: list[str]):
     task, argv = _take("--task", argv)
     _refuse_empty_paths(argv)
     command = argv[0] if argv else None
-    if task is not None and command not in ("train", "imitate"):
+    if task is not None and command not in learners.COMMANDS:
         raise ValueError(
             "--task must follow 'sparsecomm train' or 'sparsecomm imitate' (the other commands "
             f"read the task from the run folder), got {command!r}"
@@ -107,7 +108,7 @@ def parse(argv: list[str]):
                 f"'sparsecomm imitate', got {preset!r}" + (f" after {command!r}" if command else "")
             )
         cls = COMMANDS[command][0]
-        out = Path("runs") / (preset if command == "train" else f"{command}_{preset}")
+        out = Path("runs") / (preset if command == learners.RL.command else f"{command}_{preset}")
         config = PRESETS[preset][command]
         if task is not None:
             config = dataclasses.replace(config, env=task_config)

@@ -17,12 +17,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sparsecomm import learners
 from sparsecomm.channel import NoiseConfig
 from sparsecomm.configs import MAX_SEED, ILConfig, RLConfig, check_budget_fits
 from sparsecomm.envs.render import write_gif
 from sparsecomm.errors import RunError
 from sparsecomm.jsonfile import write_json
 from sparsecomm.memory import check_fits
+from sparsecomm.metric_names import written_row
 from sparsecomm.rollout import rollout
 from sparsecomm.runfolder import (
     EVAL_SEED_OFFSET,
@@ -33,7 +35,6 @@ from sparsecomm.runfolder import (
     check_index,
     check_output,
     default_output,
-    kind_of,
     learner_for,
     load_params,
     load_run,
@@ -202,7 +203,8 @@ def export_team(args: Export) -> Path:
 def evaluate_runs(
     trainer, runs, actor_params, episodes: int, greedy: bool = False, devices=None
 ) -> dict:
-    """Evaluate every run of a sweep over ``episodes`` fresh episodes, with bootstrap CIs.
+    """Evaluate every run of a sweep over ``episodes`` fresh episodes, with bootstrap CIs;
+    each metric under its written name (``group/key``, :mod:`sparsecomm.metric_names`).
 
     The runs and episodes are split over ``devices`` (default: all of them), or over as many
     as :func:`sparsecomm.sharding.sweep_devices` gives the runs, as in training; with several
@@ -218,7 +220,7 @@ def evaluate_runs(
         jax.vmap(lambda p, k: trainer.evaluate(p, k, episodes, greedy), spmd_axis_name=spmd)
     )
     with use_mesh(mesh):
-        metrics = to_host(ev(params, place_runs(keys, mesh)))
+        metrics = written_row(to_host(ev(params, place_runs(keys, mesh))))
     per_run = [
         {**run._asdict(), **{k: float(v[i]) for k, v in metrics.items()}}
         for i, run in enumerate(runs)
@@ -252,12 +254,13 @@ def render_run(trainer, actor_params, seed: int, out: Path, fps: int = 12) -> Pa
 
 
 def train(args: Train) -> dict:
-    """Run ``sparsecomm train`` or ``sparsecomm imitate`` (by the type of ``args``)."""
+    """Run ``sparsecomm train`` or ``sparsecomm imitate`` (by the learner kind of
+    ``args.config``, :mod:`sparsecomm.learners`)."""
     # Here, not in __post_init__: a preset's default --out is built before the flags replace it.
     check_output(args, folder=True, error=RunError)
     args.distributed.initialize()
     cfg = args.config
-    kind = kind_of(cfg)
+    kind = learners.of_config(cfg)
     trainer = learner_for(cfg)
     budgets = args.budgets or (cfg.budget.bits,)
     spec = SweepSpec(args.seeds, args.lams, tuple(budgets))
@@ -273,7 +276,7 @@ def train(args: Train) -> dict:
         resume=args.resume,
         tensorboard=args.tensorboard,
         progress=args.progress,
-        kind=kind,
+        kind=kind.name,
         devices=devices,
         start_params=start,
         start_from="" if args.init_from is None else f"{args.init_from}:{args.init_index}",
@@ -292,21 +295,9 @@ def train(args: Train) -> dict:
     if not is_primary():
         return results
     print(f"results -> {write_json(args.out / RESULTS, results)}")
-    for group, m in results["by_group"].items():
-        name = group if group.startswith("budget") else f"lambda={group}"
-        print(
-            f"  {name}: success {m['success_rate']['mean']:.3f} "
-            f"[{m['success_rate']['ci_low']:.3f}, {m['success_rate']['ci_high']:.3f}], "
-            f"length {m['episode_length']['mean']:.1f}, "
-            f"group reward {m['group_reward']['mean']:.0f}, "
-            f"bits/step {m['bits_per_step']['mean']:.1f} payload, "
-            f"{m['wire_bits_per_step']['mean']:.1f} wire, "
-            f"{m['speaking_fraction']['mean']:.0%} of link-steps speak"
-        )
+    _print_groups(results["by_group"])
     if cfg.num_updates > 0:
-        metrics = ("group_reward", "episode_length", "success_rate", "bits_per_step")
-        if kind == "imitate":
-            metrics = ("imitation_loss", *metrics)
+        metrics = CURVES if kind is not learners.IMITATION else ("loss/imitation_loss", *CURVES)
         curves = plot_curves(args.out / "metrics.csv", args.out / "curves.png", metrics)
         print(f"curves  -> {curves}")
     if args.gif and hasattr(trainer.env, "render"):
@@ -314,6 +305,32 @@ def train(args: Train) -> dict:
     elif args.gif:
         print(f"gif     -> none: task {cfg.task!r} has no render")
     return results
+
+
+CURVES = (
+    "episode/group_reward",
+    "episode/episode_length",
+    "episode/success_rate",
+    "channel/bits_per_step",
+)
+"""The metrics of a run folder's ``curves.png`` (imitation adds ``loss/imitation_loss``)."""
+
+
+def _print_groups(by_group: dict) -> None:
+    """One line per run group of a ``results.json``: success with its CI, length, reward,
+    payload and wire bits per step, the share of link-steps that speak."""
+    for group, m in by_group.items():
+        name = group if group.startswith("budget") else f"lambda={group}"
+        success = m["episode/success_rate"]
+        print(
+            f"  {name}: success {success['mean']:.3f} "
+            f"[{success['ci_low']:.3f}, {success['ci_high']:.3f}], "
+            f"length {m['episode/episode_length']['mean']:.1f}, "
+            f"group reward {m['episode/group_reward']['mean']:.0f}, "
+            f"bits/step {m['channel/bits_per_step']['mean']:.1f} payload, "
+            f"{m['channel/wire_bits_per_step']['mean']:.1f} wire, "
+            f"{m['channel/speaking_fraction']['mean']:.0%} of link-steps speak"
+        )
 
 
 def _run_and_outputs(run: Path | None) -> tuple[Path, Path]:

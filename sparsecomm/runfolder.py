@@ -2,9 +2,10 @@
 
 A **run folder** is the ``--out`` of ``sparsecomm train`` or ``imitate``. Its ``checkpoint/``
 (:data:`CHECKPOINT`, :mod:`sparsecomm.checkpoint`) holds the batched state of every run of the
-sweep and the metadata: the kind (:data:`KINDS`), the config and the sweep's axes, from which
-:func:`runs_of` rebuilds the list of runs. :func:`sparsecomm.sweep.run_sweep` writes it, beside
-``metrics.csv``, ``wall.csv`` (:data:`sparsecomm.sweep.WALL_CSV`) and ``tensorboard/``;
+sweep and the metadata: the learner kind (:mod:`sparsecomm.learners`), the config and the
+sweep's axes, from which :func:`runs_of` rebuilds the list of runs.
+:func:`sparsecomm.sweep.run_sweep` writes it, beside ``metrics.csv``, ``wall.csv``
+(:data:`sparsecomm.sweep.WALL_CSV`) and ``tensorboard/``;
 :func:`sparsecomm.experiment.train` then writes :data:`RESULTS`, ``curves.png`` and
 ``team.gif``.
 
@@ -28,15 +29,14 @@ import jax.numpy as jnp
 import numpy as np
 from flax import serialization
 
-from sparsecomm import checkpoint
+from sparsecomm import checkpoint, learners
 from sparsecomm.configs import ILConfig, RLConfig, from_dict, to_dict
 from sparsecomm.envs import registry
 from sparsecomm.envs.task import Task
 from sparsecomm.errors import CheckpointError, RunError
-from sparsecomm.imitation import make_imitate, oracle_expert, team_expert
+from sparsecomm.imitation import oracle_expert, team_expert
 from sparsecomm.jsonfile import write_json
 from sparsecomm.learner import Learner, make_team
-from sparsecomm.rl import make_train
 from sparsecomm.rollout import Expert
 from sparsecomm.sharding import to_host
 from sparsecomm.sweep import (
@@ -55,9 +55,6 @@ RESULTS = "results.json"
 TEAM, ACTOR = "team.json", "actor.msgpack"
 """An exported team's two files: its metadata and its actor's parameters."""
 
-KINDS = {"train": RLConfig, "imitate": ILConfig}
-"""The kinds of run a folder records, and the config each is read back as."""
-
 PRETRAINED = Path(__file__).parent / "pretrained" / "sparse_team"
 """The trained sparse team shipped with the package, an exported team (docs/budget.md says how
 it was trained)."""
@@ -68,11 +65,9 @@ from training (``sparsecomm eval`` and ``sparsecomm deploy`` play the same ones)
 
 
 def kind_of(config: RLConfig | ILConfig) -> str:
-    """The kind (a key of :data:`KINDS`) a run of ``config`` is recorded as."""
-    for kind, cls in KINDS.items():
-        if type(config) is cls:
-            return kind
-    raise TypeError(f"a run's config must be one of {list(KINDS.values())}, got {type(config)}")
+    """The learner kind's name (:data:`sparsecomm.learners.KINDS`) a run of ``config`` is
+    recorded as."""
+    return learners.of_config(config).name
 
 
 def at_least(args, **lowest) -> None:
@@ -174,18 +169,22 @@ def load_expert(config: ILConfig) -> Expert:
 
 
 def learner_for(config: RLConfig | ILConfig) -> Learner:
-    """The learner of a config: RL, or imitation of the expert the config names."""
-    if isinstance(config, ILConfig):
-        return make_imitate(config, load_expert(config))
-    return make_train(config)
+    """The learner of a config, by its kind's ``make``: RL, or imitation of the expert the
+    config names."""
+    kind = learners.of_config(config)
+    if kind is learners.IMITATION:
+        return kind.make(config, load_expert(config))
+    return kind.make(config)
 
 
 def _config(meta: dict, where: Path) -> RLConfig | ILConfig:
-    """The config recorded in a run folder's or exported team's metadata."""
-    kind = meta.get("kind")
-    if kind not in KINDS:
-        raise ValueError(f"{where} holds a {kind!r} run, not one of {list(KINDS)}")
-    return from_dict(KINDS[kind], meta["config"])
+    """The config recorded in a run folder's or exported team's metadata, read as its learner
+    kind's config class (a kind recorded by its command, as older folders did, reads too)."""
+    try:
+        kind = learners.named(meta.get("kind"))
+    except ValueError as e:
+        raise ValueError(f"{where} holds a {meta.get('kind')!r} run: {e}") from None
+    return from_dict(kind.config, meta["config"])
 
 
 def is_team(folder: str | Path) -> bool:

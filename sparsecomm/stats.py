@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
+from sparsecomm.metric_names import alias
+
 
 def expanded_level(n: int, confidence: float = 0.95) -> float:
     """Hesterberg's small-sample expansion of a bootstrap interval's nominal level.
@@ -105,12 +107,15 @@ def iqm(values) -> float:
 
 
 def read_csv(path: str | Path) -> dict[str, np.ndarray]:
+    """Every column of a CSV file (``metrics.csv``, ``wall.csv``) as floats, by name; metric
+    columns by their written names (``group/key``), those of files written before the groups
+    read through :func:`sparsecomm.metric_names.alias`."""
     with open(path, newline="") as f:
         rows = list(csv.DictReader(f))
     if not rows:
         raise ValueError(f"{path} has no rows")
     # Blank cells (the budget of a fixed-lambda run) read as NaN.
-    return {k: np.asarray([float(r[k] or "nan") for r in rows]) for k in rows[0]}
+    return {alias(k): np.asarray([float(r[k] or "nan") for r in rows]) for k in rows[0]}
 
 
 def group_label(lam: float, budget: float) -> str:
@@ -119,10 +124,11 @@ def group_label(lam: float, budget: float) -> str:
 
 
 def curves(data: dict[str, np.ndarray], metric: str):
-    """Per run group: env steps and (seeds, updates) values of ``metric``. Groups are keyed
+    """Per run group: env steps and (seeds, updates) values of ``metric`` (a written name, or a
+    flat key read through :func:`~sparsecomm.metric_names.alias`). Groups are keyed
     ``(budget, lam)`` (budget NaN for fixed-lambda runs), fixed lambdas first, then budgets
     from the largest."""
-    out = {}
+    out, metric = {}, alias(metric)
     budget = data.get("budget", np.full(data["lam"].shape, np.nan))
     # NaN != NaN, so the fixed-lambda runs' budget joins a group as None, not as NaN.
     groups = {
@@ -184,19 +190,25 @@ def _save(fig, legend_ax, title: str | None, out_png: str | Path) -> Path:
 def plot_curves(
     csv_path: str | Path,
     out_png: str | Path,
-    metrics=("group_reward", "episode_length", "success_rate", "bits_per_step"),
+    metrics=(
+        "episode/group_reward",
+        "episode/episode_length",
+        "episode/success_rate",
+        "channel/bits_per_step",
+    ),
     window: int = 10,
     title: str | None = None,
 ) -> Path:
     """Learning curves (mean over seeds, shaded min-max band) per lambda or budget, one panel
-    per metric."""
+    per metric (written names; flat keys are read through
+    :func:`~sparsecomm.metric_names.alias`)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     data = read_csv(csv_path)
-    metrics = [m for m in metrics if m in data]
+    metrics = [alias(m) for m in metrics if alias(m) in data]
     fig, axes = plt.subplots(1, len(metrics), figsize=(4.2 * len(metrics), 3.4), squeeze=False)
     for ax, metric in zip(axes[0], metrics, strict=True):
         for (budget, lam), (steps, vals) in curves(data, metric).items():
@@ -206,7 +218,7 @@ def plot_curves(
             if vals.shape[0] > 1:
                 ax.fill_between(steps, np.nanmin(v, 0), np.nanmax(v, 0), alpha=0.2)
         ax.set_xlabel("env steps")
-        ax.set_title(metric.replace("_", " "))
+        ax.set_title(metric.split("/")[-1].replace("_", " "))
         ax.grid(alpha=0.3)
     return _save(fig, axes[0][0], title, out_png)
 
@@ -215,8 +227,9 @@ def plot_pareto(points, out_png: str | Path, title: str | None = None) -> Path:
     """Success rate and group reward against payload bits per step, one marker per method.
 
     ``points``: sequence of dicts with ``label``, ``group`` (methods of one group share a colour
-    and are joined by a line, e.g. the lambdas of a sweep) and ``bits_per_step``,
-    ``success_rate``, ``group_reward``, each a ``(mean, ci_low, ci_high)`` tuple. The bit axis is
+    and are joined by a line, e.g. the lambdas of a sweep) and the metrics by written name,
+    ``channel/bits_per_step``, ``episode/success_rate``, ``episode/group_reward``, each a
+    ``(mean, ci_low, ci_high)`` tuple. The bit axis is
     symmetric-log so that 0 bits (no communication, the oracle) stays on the plot.
     """
     import matplotlib
@@ -230,12 +243,11 @@ def plot_pareto(points, out_png: str | Path, title: str | None = None) -> Path:
     groups = list(dict.fromkeys(p["group"] for p in points))
     colours = {g: f"C{i % 10}" for i, g in enumerate(groups)}
     fig, axes = plt.subplots(1, 2, figsize=(10.5, 4.2))
-    for ax, metric in zip(axes, ("success_rate", "group_reward"), strict=True):
+    bits = "channel/bits_per_step"
+    for ax, metric in zip(axes, ("episode/success_rate", "episode/group_reward"), strict=True):
         for g in groups:
-            pts = sorted(
-                (p for p in points if p["group"] == g), key=lambda p: p["bits_per_step"][0]
-            )
-            x = np.array([p["bits_per_step"] for p in pts])
+            pts = sorted((p for p in points if p["group"] == g), key=lambda p: p[bits][0])
+            x = np.array([p[bits] for p in pts])
             y = np.array([p[metric] for p in pts])
             ax.errorbar(
                 x[:, 0],
@@ -254,6 +266,6 @@ def plot_pareto(points, out_png: str | Path, title: str | None = None) -> Path:
                     )
         ax.set_xscale("symlog", linthresh=1.0)
         ax.set_xlabel("payload bits per step (team)")
-        ax.set_title(metric.replace("_", " "))
+        ax.set_title(metric.split("/")[-1].replace("_", " "))
         ax.grid(alpha=0.3)
     return _save(fig, axes[0], title, out_png)

@@ -4,9 +4,10 @@ Every learner (RL, imitation) exposes ``init(key, lam, budget) -> state`` and
 ``update_chunk(state, n) -> (state, metrics stacked over n updates)``. :func:`run_sweep` vmaps
 them over the flattened grid of (lambda, budget, seed) runs (a budget of NaN is none), advances
 all runs together chunk by chunk, and after each chunk appends one CSV row per run and update,
-writes TensorBoard scalars, updates
-the progress bar, and every ``checkpoint_every`` chunks saves the whole batched state. A run that
-dies resumes from its last checkpoint and ends with the same parameters as an uninterrupted one.
+writes TensorBoard scalars (every metric under its written name, ``group/key``:
+:mod:`sparsecomm.metric_names`), updates the progress bar, and every ``checkpoint_every``
+chunks saves the whole batched state. A run that dies resumes from its last checkpoint and
+ends with the same parameters as an uninterrupted one.
 """
 
 from __future__ import annotations
@@ -27,10 +28,11 @@ import jax.numpy as jnp
 import numpy as np
 from tqdm import tqdm
 
-from sparsecomm import checkpoint
+from sparsecomm import checkpoint, learners
 from sparsecomm.configs import to_dict
 from sparsecomm.errors import CheckpointError, DivergedError, RunError
 from sparsecomm.learner import Learner
+from sparsecomm.metric_names import written
 from sparsecomm.sharding import RUNS, is_primary, make_mesh, place_runs, to_host, use_mesh
 
 FIRST_COLUMNS = ["seed", "lam", "budget", "update", "env_steps", "episodes"]
@@ -114,6 +116,7 @@ def spec_from_meta(meta: dict) -> SweepSpec:
 
 
 def _row_metrics(metrics: dict) -> list[str]:
+    """The metric keys of a CSV row: :data:`METRIC_ORDER` first, then the rest by name."""
     rest = sorted(k for k in metrics if k not in METRIC_ORDER)
     return [k for k in METRIC_ORDER if k in metrics] + rest
 
@@ -142,9 +145,19 @@ def _truncate_csv(path: Path, max_update: int) -> None:
     os.replace(tmp, path)
 
 
+def tensorboard_run(run: Run) -> str:
+    """The TensorBoard run (a folder under ``tensorboard/``) of one run of a sweep:
+    ``lam=L/seed=S``, or ``budget=B/lam=L/seed=S`` for a budgeted run."""
+    budget = "" if run.budget is None else f"budget={run.budget:g}/"
+    return f"{budget}lam={run.lam:g}/seed={run.seed}"
+
+
 class _Log:
     """A sweep's ``metrics.csv`` (one row per run and update) and TensorBoard scalars.
 
+    Both name each metric as it is written (``group/key``, :func:`metric_names.written`). The
+    CSV has one column per metric; TensorBoard has one writer per run of the sweep
+    (:func:`tensorboard_run`) and one tag per metric, so each metric's chart shows every run.
     Only the writing process (process 0 under ``jax.distributed``) opens anything.
     """
 
@@ -160,7 +173,8 @@ class _Log:
         primary: bool,
     ):
         self.runs, self.steps, self.episodes = runs, steps_per_update, episodes_per_update
-        self.csv = self.tb = self.file = self.wall = self.wall_file = None
+        self.csv = self.file = self.wall = self.wall_file = None
+        self.tb = []
         if not primary:
             return
         path, wall = out / "metrics.csv", out / WALL_CSV
@@ -185,11 +199,17 @@ class _Log:
             self._open_tb(purge, resume_at)
 
     def _open_tb(self, purge_step, update: int) -> None:
+        """One TensorBoard writer per run, in its :func:`tensorboard_run` folder."""
         from tensorboardX import SummaryWriter
 
-        self.tb = SummaryWriter(
-            str(self.tb_dir), purge_step=purge_step, filename_suffix=f".{update}.{os.getpid()}"
-        )
+        self.tb = [
+            SummaryWriter(
+                str(self.tb_dir / tensorboard_run(run)),
+                purge_step=purge_step,
+                filename_suffix=f".{update}.{os.getpid()}",
+            )
+            for run in self.runs
+        ]
 
     def sync(self, update: int) -> None:
         """Everything logged so far on disk, before a checkpoint that covers it. tensorboardX
@@ -200,8 +220,9 @@ class _Log:
         for f in (self.file, self.wall_file):
             if f is not None:
                 f.flush()
-        if self.tb is not None:
-            self.tb.close()
+        if self.tb:
+            for writer in self.tb:
+                writer.close()
             self._open_tb(None, update)
 
     def write(self, metrics: dict, first_update: int) -> None:
@@ -209,8 +230,9 @@ class _Log:
         if self.csv is None:
             return
         names = _row_metrics(metrics)
+        tags = [written(k) for k in names]
         if not self.header:
-            self.csv.writerow(FIRST_COLUMNS + names)
+            self.csv.writerow(FIRST_COLUMNS + tags)
             self.header = True
         n = next(iter(metrics.values())).shape[1]
         for u in range(n):
@@ -223,14 +245,19 @@ class _Log:
                     [run.seed, run.lam, budget, upd, env_steps, upd * self.episodes]
                     + [f"{v:.6g}" for v in values]
                 )
-                if self.tb is not None:
-                    tag = f"lam={run.lam:g}" if run.budget is None else f"budget={budget}"
-                    for k, v in zip(names, values, strict=True):
-                        if np.isfinite(v):  # a target not yet set (inf) or none (NaN)
-                            self.tb.add_scalar(f"{tag}/seed={run.seed}/{k}", v, env_steps)
+                if self.tb:
+                    self._scalars(self.tb[r], tags, values, env_steps)
         self.file.flush()  # on disk before the checkpoint that covers these updates
-        if self.tb is not None:
-            self.tb.flush()
+        for writer in self.tb:
+            writer.flush()
+
+    @staticmethod
+    def _scalars(writer, tags, values, env_steps: int) -> None:
+        """One run's scalars of one update, at its env steps; a value that is not finite (a
+        target not yet set, inf, or none, NaN) is left out."""
+        for tag, v in zip(tags, values, strict=True):
+            if np.isfinite(v):
+                writer.add_scalar(tag, v, env_steps)
 
     def write_wall(self, update: int, wall_s: float) -> None:
         """Log that the sweep had trained ``wall_s`` seconds when update ``update`` ended."""
@@ -239,7 +266,7 @@ class _Log:
             self.wall_file.flush()
 
     def close(self) -> None:
-        for f in (self.file, self.tb, self.wall_file):
+        for f in (self.file, *self.tb, self.wall_file):
             if f is not None:
                 f.close()
 
@@ -289,7 +316,7 @@ def run_sweep(
     resume: bool = True,
     tensorboard: bool = True,
     progress: bool = True,
-    kind: str = "train",
+    kind: str | None = None,
     on_chunk: Callable | None = None,
     devices=None,
     start_params=None,
@@ -302,7 +329,8 @@ def run_sweep(
     episodes per update) and its task (``env.max_steps`` steps per episode, for the
     logged env steps). ``num_updates`` stops the sweep there instead of at
     ``config.num_updates`` (a resume continues from the checkpoint either way). ``kind``: what
-    the run folder records (``sparsecomm.runfolder.KINDS``).
+    the run folder records, a learner kind's name (default: the kind of the learner's config,
+    :mod:`sparsecomm.learners`).
 
     ``start_params`` (one run's parameters, no run axis): every run starts from them, with a
     fresh optimiser state (fine-tuning; ``start_from`` names where they came from, recorded in
@@ -313,6 +341,7 @@ def run_sweep(
     one device.
     """
     config = learner.config
+    kind = learners.of_config(config).name if kind is None else kind
     num_updates = config.num_updates if num_updates is None else num_updates
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -522,12 +551,23 @@ _RECORD_DEFAULTS = {"budgets": [None], "start_from": ""}
 (as :func:`spec_from_meta` reads it)."""
 
 
+def _kind_name(kind):
+    """A recorded learner kind by its name (older run folders recorded the command that
+    trained it, :func:`sparsecomm.learners.named`); anything else as it is."""
+    try:
+        return learners.named(kind).name
+    except (ValueError, TypeError):
+        return kind
+
+
 def differences(old: dict, new: dict, may_change=RESUME_MAY_CHANGE, now: str = "now") -> list:
     """Every field of the run where the checkpoint's metadata ``old`` differs from ``new`` (a
     :func:`sweep_record`), ``config`` fields in ``may_change`` aside, each with both values."""
     config = old.get("config", {})
     if not isinstance(config, dict):
         return [f"config (checkpoint: {config!r}, {now}: an object of the config's fields)"]
+    old = {**old, "kind": _kind_name(old.get("kind", _MISSING))}
+    new = {**new, "kind": _kind_name(new["kind"])}
     old_cfg = {k: v for k, v in config.items() if k not in may_change}
     new_cfg = {k: v for k, v in new["config"].items() if k not in may_change}
     diffs = _differences(old_cfg, new_cfg, "config", now)

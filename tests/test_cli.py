@@ -48,14 +48,15 @@ def test_train_eval_render(tmp_path, fast_compile):
         "update",
         "env_steps",
         "episodes",
-        "group_reward",
-        "episode_length",
-        "success_rate",
-        "bits_per_step",
-        "wire_bits_per_step",
-        "penalty",
+        "episode/group_reward",
+        "episode/episode_length",
+        "episode/success_rate",
+        "channel/bits_per_step",
+        "channel/wire_bits_per_step",
+        "loss/penalty",
     ):
         assert col in header
+    _assert_every_metric_grouped(header, out / "tensorboard", runs=4)
     rows = (out / "metrics.csv").read_text().splitlines()[1:]
     assert len(rows) == 2 * 2 * 2  # updates x seeds x lambdas
     wall = [line.split(",") for line in (out / "wall.csv").read_text().splitlines()]
@@ -75,6 +76,45 @@ def test_train_eval_render(tmp_path, fast_compile):
     team = read_team(tmp_path / "team")
     assert team.config == config and team.run == runs[3] and runs_of(tmp_path / "team") == [runs[3]]
     _assert_same(jax.tree.map(lambda x: np.asarray(x)[3], actor), team.actor)
+
+
+def _assert_every_metric_grouped(header: list[str], tensorboard=None, runs: int = 0) -> None:
+    """Every metric column of a ``metrics.csv`` header, and every TensorBoard tag of every run
+    (one writer per run), is ``group/key`` with the group :data:`GROUPS` gives the key."""
+    from sparsecomm.metric_names import GROUPS, group_of
+    from sparsecomm.sweep import FIRST_COLUMNS
+
+    def grouped(name):
+        group, _, key = name.partition("/")
+        return group in GROUPS and group_of(key) == group
+
+    metrics = header[len(FIRST_COLUMNS) :]
+    assert header[: len(FIRST_COLUMNS)] == FIRST_COLUMNS and metrics
+    assert [m for m in metrics if not grouped(m)] == []
+    if tensorboard is None:
+        return
+    folders = sorted({p.parent for p in tensorboard.rglob("events.out.tfevents.*")})
+    assert len(folders) == runs  # one writer (a TensorBoard run) per run of the sweep
+    for folder in folders:
+        tags = {t for f in folder.glob("events.out.tfevents.*") for t in _scalar_tags(f)}
+        assert tags and [t for t in tags if not grouped(t)] == [], folder
+        assert tags <= set(metrics)
+
+
+def _scalar_tags(path) -> set[str]:
+    """The scalar tags of a TensorBoard event file (TFRecord framing: an 8-byte length, a 4-byte
+    CRC, the ``Event`` protobuf, a 4-byte CRC)."""
+    import struct
+
+    from tensorboardX.proto.event_pb2 import Event
+
+    data, tags, at = path.read_bytes(), set(), 0
+    while at < len(data):
+        (length,) = struct.unpack("<Q", data[at : at + 8])
+        event = Event.FromString(data[at + 12 : at + 12 + length])
+        tags |= {v.tag for v in event.summary.value}
+        at += 12 + length + 4
+    return tags
 
 
 def _assert_same(a, b) -> None:
@@ -125,7 +165,8 @@ def test_imitate_writes_imitation_loss(tmp_path, fast_compile):
     out = tmp_path / "im"
     main(["imitate", *TINY, "--no-gif", "--no-tensorboard", "--out", str(out)])
     header = (out / "metrics.csv").read_text().splitlines()[0].split(",")
-    assert "imitation_loss" in header and "beta" in header
+    assert "loss/imitation_loss" in header and "schedule/beta" in header
+    _assert_every_metric_grouped(header)
     assert json.loads((out / "results.json").read_text())["runs"][0]["lam"] == 0.0
 
 
@@ -137,7 +178,7 @@ def test_budget_sweep_export_and_the_shipped_team(tmp_path, fast_compile, monkey
     assert list(results["by_group"]) == ["0", "budget=8/0"]
     assert [r["budget"] for r in results["runs"]] == [None, 8.0]
     header = (out / "metrics.csv").read_text().splitlines()[0].split(",")
-    assert {"budget", "price", "bit_target"} <= set(header)
+    assert {"budget", "budget/price", "budget/bit_target"} <= set(header)
     # An exported team is the run's team, weights only (msgpack + JSON, no pickle).
     main(["export", "--run", str(out), "--index", "1", "--out", str(tmp_path / "team")])
     config, _, runs, actor = load_run(out)
@@ -147,14 +188,15 @@ def test_budget_sweep_export_and_the_shipped_team(tmp_path, fast_compile, monkey
         np.testing.assert_array_equal(np.asarray(x)[1], np.asarray(y)[0])
     main(["eval", "--run", str(tmp_path / "team"), "--episodes", "4"])
     alone = json.loads((tmp_path / "team" / "eval.json").read_text())["runs"][0]
-    assert alone["budget"] == 8.0 and alone["episode_length"] > 0
+    assert alone["budget"] == 8.0 and alone["episode/episode_length"] > 0
     # The shipped sparse team: `sparsecomm eval` with no run. It was measured at success 0.988
     # and 14.5 payload bits per step over 500 episodes (docs/budget.md).
     monkeypatch.chdir(tmp_path)
     main(["eval", "--episodes", "64"])
     shipped = json.loads((tmp_path / "runs" / "pretrained" / "eval.json").read_text())["runs"][0]
     assert shipped["budget"] == 16.0
-    assert shipped["success_rate"] > 0.85 and 10 < shipped["bits_per_step"] < 20, shipped
+    assert shipped["episode/success_rate"] > 0.85, shipped
+    assert 10 < shipped["channel/bits_per_step"] < 20, shipped
 
 
 def test_the_silent_preset_prices_the_wire_and_holds_silent_links():

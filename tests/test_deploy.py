@@ -702,6 +702,7 @@ def test_deploy_matches_sparsecomm_eval(tmp_path):
     team = _team(tmp_path / "team")
     (row,) = deploy(Deploy(run=team, episodes=8, out=tmp_path / "deploy"))["runs"]
     ev = evaluate(Eval(run=team, episodes=8, out=tmp_path / "eval.json"))["runs"][0]
+    ev = {k.rpartition("/")[2]: v for k, v in ev.items()}  # deploy's flat names, eval's grouped
     assert row["simulation"]["identical_episodes"] == 8
     assert row["success_rate"] == pytest.approx(ev["success_rate"], abs=1e-6)
     assert row["episode_length"] == pytest.approx(ev["episode_length"], rel=1e-6)

@@ -92,10 +92,10 @@ def test_table1_has_every_lambda(quick_run):
     summary = json.loads((quick_run / "summary.json").read_text())
     assert set(summary["rl"]) == {f"{lam:g}" for lam in RL_LAMS}
     # the fixed-width code sends ceil(log2(16)) = 4 bits for each of 60 elements every step
-    assert summary["baselines"]["fixed"]["bits_per_step"]["mean"] == 240.0
-    assert summary["baselines"]["continuous"]["bits_per_step"]["mean"] == 32 * 60
-    assert summary["baselines"]["no_comm"]["bits_per_step"]["mean"] == 0.0
-    assert summary["baselines"]["oracle"]["success_rate"]["mean"] == 0.0  # 12-step episodes
+    assert summary["baselines"]["fixed"]["channel/bits_per_step"]["mean"] == 240.0
+    assert summary["baselines"]["continuous"]["channel/bits_per_step"]["mean"] == 32 * 60
+    assert summary["baselines"]["no_comm"]["channel/bits_per_step"]["mean"] == 0.0
+    assert summary["baselines"]["oracle"]["episode/success_rate"]["mean"] == 0.0  # 12-step episodes
 
 
 @pytest.mark.parametrize(
@@ -122,7 +122,12 @@ def test_the_rl_team_expert_needs_lambda_zero():
 
 def test_the_rl_team_expert_is_the_best_lambda_zero_team(tmp_path):
     def run(lam, success, length, budget=None):
-        return {"lam": lam, "budget": budget, "success_rate": success, "episode_length": length}
+        return {
+            "lam": lam,
+            "budget": budget,
+            "episode/success_rate": success,
+            "episode/episode_length": length,
+        }
 
     runs = [
         run(0.01, 1.0, 10.0),  # best, but not lambda 0
@@ -149,10 +154,10 @@ def st(mean, half=0.0):
 
 def method(success, reward, bits, length=100.0, half=0.01):
     return {
-        "success_rate": st(success, half),
-        "group_reward": st(reward, abs(reward) * half),
-        "bits_per_step": st(bits, bits * half),
-        "episode_length": st(length, 1.0),
+        "episode/success_rate": st(success, half),
+        "episode/group_reward": st(reward, abs(reward) * half),
+        "channel/bits_per_step": st(bits, bits * half),
+        "episode/episode_length": st(length, 1.0),
     }
 
 
@@ -203,7 +208,7 @@ def test_claim_3_fails_when_bits_rise_with_lambda():
     assert verdicts(s)[2] is False
     s = paper_like()
     for lam in s["rl"]:
-        s["rl"][lam]["bits_per_step"] = st(100.0, 5.0)  # flat: CIs overlap
+        s["rl"][lam]["channel/bits_per_step"] = st(100.0, 5.0)  # flat: CIs overlap
     assert verdicts(s)[2] is False
 
 
@@ -223,17 +228,17 @@ def test_claim_4_is_judged_on_success_and_length_not_group_reward():
 def test_claim_4_tolerances_on_means_and_cis():
     # lambda 0: success 0.9, length 100; means may lose 10%, CIs must reach within 5%
     s = paper_like()
-    s["rl"][0.001]["success_rate"] = st(0.80, 0.1)  # mean 89% of lambda 0's: too low
+    s["rl"][0.001]["episode/success_rate"] = st(0.80, 0.1)  # mean 89% of lambda 0's: too low
     assert verdicts(s)[3] is False
-    s["rl"][0.001]["success_rate"] = st(0.83, 0.005)  # mean 92%, but CI high 0.835 < 0.855
+    s["rl"][0.001]["episode/success_rate"] = st(0.83, 0.005)  # mean 92%, but CI high 0.835 < 0.855
     assert verdicts(s)[3] is False
-    s["rl"][0.001]["success_rate"] = st(0.83, 0.05)  # mean 92%, CI reaches 0.88
+    s["rl"][0.001]["episode/success_rate"] = st(0.83, 0.05)  # mean 92%, CI reaches 0.88
     assert verdicts(s)[3] is True
-    s["rl"][0.001]["episode_length"] = st(111.0, 10.0)  # mean 111% of lambda 0's
+    s["rl"][0.001]["episode/episode_length"] = st(111.0, 10.0)  # mean 111% of lambda 0's
     assert verdicts(s)[3] is False
-    s["rl"][0.001]["episode_length"] = st(108.0, 1.0)  # mean 108%, CI low 107 > 105
+    s["rl"][0.001]["episode/episode_length"] = st(108.0, 1.0)  # mean 108%, CI low 107 > 105
     assert verdicts(s)[3] is False
-    s["rl"][0.001]["episode_length"] = st(108.0, 4.0)  # CI low 104
+    s["rl"][0.001]["episode/episode_length"] = st(108.0, 4.0)  # CI low 104
     assert verdicts(s)[3] is True
     s["rl"][0.01] = method(0.1, 500, 1, length=250.0)  # the largest lambda may be hurt
     assert verdicts(s)[3] is True
@@ -252,7 +257,7 @@ def test_claim_5_needs_learning_sparsity_and_collapse():
     assert verdicts(s)[4] is False
     s = paper_like()
     for lam in (0.0001, 0.0004, 0.0007):
-        s["imitation"][lam]["bits_per_step"] = st(100.0, 1.0)  # not sparse
+        s["imitation"][lam]["channel/bits_per_step"] = st(100.0, 1.0)  # not sparse
     assert verdicts(s)[4] is False
     s = paper_like()
     s["imitation"][0.0] = method(0.3, 8000, 110)  # never learned

@@ -24,16 +24,18 @@ from pathlib import Path
 
 import numpy as np
 
+from sparsecomm import learners
 from sparsecomm.jsonfile import write_json
+from sparsecomm.metric_names import aliased
 from sparsecomm.stats import bootstrap_ci, iqm, read_csv
 
 METRICS = (
-    "success_rate",
-    "episode_length",
-    "group_reward",
-    "bits_per_step",
-    "wire_bits_per_step",
-    "penalty",
+    "episode/success_rate",
+    "episode/episode_length",
+    "episode/group_reward",
+    "channel/bits_per_step",
+    "channel/wire_bits_per_step",
+    "loss/penalty",
 )
 """Final-evaluation metrics summarised per method (SPEC section 6)."""
 
@@ -93,15 +95,16 @@ def stats(values) -> dict:
 
 
 def summarize_runs(runs: list[dict], metrics=METRICS) -> dict[float, dict]:
-    """Per lambda, :func:`stats` of each metric over the runs (``results.json["runs"]``)."""
-    out = {}
+    """Per lambda, :func:`stats` of each metric over the runs (``results.json["runs"]``),
+    by written name (a run's flat names read through :func:`metric_names.alias`)."""
+    out, runs = {}, [aliased(r) for r in runs]
     for lam in sorted({float(r["lam"]) for r in runs}):
         sel = [r for r in runs if float(r["lam"]) == lam]
         out[lam] = {m: stats([r[m] for r in sel]) for m in metrics if m in sel[0]}
     return out
 
 
-def training_mean(csv_path: str | Path, metric: str = "success_rate") -> dict[float, dict]:
+def training_mean(csv_path: str | Path, metric: str = "episode/success_rate") -> dict[float, dict]:
     """Per lambda, :func:`stats` over seeds of a metric averaged over all training updates
     (the normalised area under the learning curve: a sample-efficiency measure)."""
     data = read_csv(csv_path)
@@ -146,26 +149,26 @@ def claim_no_comm(summary: dict) -> Claim:
     base = summary.get("baselines", {}).get("no_comm")
     if base is None:
         return _missing(1, "the no-communication baseline")
-    s = base["success_rate"]
+    s = base["episode/success_rate"]
     return Claim(
         1,
         CLAIMS[0],
         s["mean"] < NO_COMM_MAX_SUCCESS,
-        f"no-communication success {fmt(s)}, episode length {fmt(base['episode_length'])}",
+        f"no-communication success {fmt(s)}, episode length {fmt(base['episode/episode_length'])}",
         f"held if the no-communication mean success < {NO_COMM_MAX_SUCCESS}",
     )
 
 
 def claim_comm(summary: dict) -> Claim:
     base = summary.get("baselines", {}).get("no_comm")
-    rl = summary.get("rl")
+    rl = summary.get(learners.RL.name)
     if base is None or not rl:
         return _missing(2, "the RL sweep and the no-communication baseline")
-    b = base["success_rate"]
+    b = base["episode/success_rate"]
     ok = True
     parts = []
     for lam, st in sorted(rl.items()):
-        s = st["success_rate"]
+        s = st["episode/success_rate"]
         ok &= s["mean"] >= b["mean"] + COMM_MIN_GAIN and s["ci_low"] > b["ci_high"]
         parts.append(f"λ={lam:g}: {fmt(s)}")
     return Claim(
@@ -179,11 +182,11 @@ def claim_comm(summary: dict) -> Claim:
 
 
 def claim_bits_fall(summary: dict) -> Claim:
-    rl = summary.get("rl")
+    rl = summary.get(learners.RL.name)
     if not rl or len(rl) < 2:
         return _missing(3, "an RL sweep with at least two lambdas")
     lams = sorted(rl)
-    bits = [rl[lam]["bits_per_step"] for lam in lams]
+    bits = [rl[lam]["channel/bits_per_step"] for lam in lams]
     monotone = all(
         b1["mean"] <= b0["mean"] * (1 + BITS_MONOTONE_TOL) + BITS_ABS_TOL
         for b0, b1 in zip(bits, bits[1:], strict=False)
@@ -203,15 +206,15 @@ def claim_bits_fall(summary: dict) -> Claim:
 def keeps_performance(st: dict, ref: dict) -> bool:
     """Claim 4's test: ``st`` (a method's stats) keeps the success rate and episode length of
     ``ref`` (the smallest lambda's) within ``KEEP_MEAN_TOL`` (means) and ``KEEP_CI_TOL`` (CIs)."""
-    s, s0 = st["success_rate"], ref["success_rate"]["mean"]
-    n, n0 = st["episode_length"], ref["episode_length"]["mean"]
+    s, s0 = st["episode/success_rate"], ref["episode/success_rate"]["mean"]
+    n, n0 = st["episode/episode_length"], ref["episode/episode_length"]["mean"]
     success = s["mean"] >= (1 - KEEP_MEAN_TOL) * s0 and s["ci_high"] >= (1 - KEEP_CI_TOL) * s0
     length = n["mean"] <= (1 + KEEP_MEAN_TOL) * n0 and n["ci_low"] <= (1 + KEEP_CI_TOL) * n0
     return bool(success and length)
 
 
 def claim_sparse_rl(summary: dict) -> Claim:
-    rl = summary.get("rl")
+    rl = summary.get(learners.RL.name)
     if not rl or len(rl) < 3:
         return _missing(4, "an RL sweep with at least three lambdas")
     lams = sorted(rl)
@@ -219,13 +222,14 @@ def claim_sparse_rl(summary: dict) -> Claim:
     middle = lams[1:-1]
     kept = {lam: keeps_performance(rl[lam], ref) for lam in middle}
     sparse = {
-        lam: rl[lam]["bits_per_step"]["mean"] <= ref["bits_per_step"]["mean"] / BITS_FACTOR
+        lam: rl[lam]["channel/bits_per_step"]["mean"]
+        <= ref["channel/bits_per_step"]["mean"] / BITS_FACTOR
         for lam in middle
     }
     held = all(kept.values()) and any(sparse[lam] and kept[lam] for lam in middle)
     rows = "; ".join(
-        f"λ={lam:g}: bits {fmt(rl[lam]['bits_per_step'])}, success "
-        f"{fmt(rl[lam]['success_rate'])}, length {fmt(rl[lam]['episode_length'])}"
+        f"λ={lam:g}: bits {fmt(rl[lam]['channel/bits_per_step'])}, success "
+        f"{fmt(rl[lam]['episode/success_rate'])}, length {fmt(rl[lam]['episode/episode_length'])}"
         for lam in lams
     )
     return Claim(
@@ -243,22 +247,24 @@ def claim_sparse_rl(summary: dict) -> Claim:
 
 
 def claim_imitation(summary: dict) -> Claim:
-    il = summary.get("imitation")
+    il = summary.get(learners.IMITATION.name)
     if not il or len(il) < 3:
         return _missing(5, "an imitation sweep with at least three lambdas")
     lams = sorted(il)
     ref, top = il[lams[0]], il[lams[-1]]
-    s0 = ref["success_rate"]["mean"]
+    s0 = ref["episode/success_rate"]["mean"]
     learned = s0 >= IL_MIN_SUCCESS
     sparse = [
         lam
         for lam in lams[1:-1]
-        if il[lam]["bits_per_step"]["mean"] <= ref["bits_per_step"]["mean"] / BITS_FACTOR
-        and il[lam]["success_rate"]["mean"] >= s0 - IL_SUCCESS_TOL
+        if il[lam]["channel/bits_per_step"]["mean"]
+        <= ref["channel/bits_per_step"]["mean"] / BITS_FACTOR
+        and il[lam]["episode/success_rate"]["mean"] >= s0 - IL_SUCCESS_TOL
     ]
-    collapsed = top["success_rate"]["mean"] < COLLAPSE_FRACTION * s0
+    collapsed = top["episode/success_rate"]["mean"] < COLLAPSE_FRACTION * s0
     rows = "; ".join(
-        f"λ={lam:g}: success {fmt(il[lam]['success_rate'])}, bits {fmt(il[lam]['bits_per_step'])}"
+        f"λ={lam:g}: success {fmt(il[lam]['episode/success_rate'])}, "
+        f"bits {fmt(il[lam]['channel/bits_per_step'])}"
         for lam in lams
     )
     return Claim(
@@ -281,7 +287,7 @@ def claim_rcl(summary: dict) -> Claim:
         "reinforced communication learning (RCL)."
     )
     auc = summary.get("training_success", {})
-    rl = summary.get("rl")
+    rl = summary.get(learners.RL.name)
     if "rcl" not in auc or "rl" not in auc or not rl:
         return Claim(0, text, None, "not run: the RL sweep and the RCL baseline", "")
     lam0 = min(auc["rl"])
@@ -313,14 +319,21 @@ def _cell(s: dict, digits: int = 3) -> str:
 
 def metrics_table(rows: dict, first: str, metrics=None) -> str:
     """Markdown table: one row per key of ``rows`` (label -> stats), mean [95% CI] and IQM."""
-    metrics = metrics or ("episode_length", "group_reward", "success_rate", "bits_per_step")
+    metrics = metrics or (
+        "episode/episode_length",
+        "episode/group_reward",
+        "episode/success_rate",
+        "channel/bits_per_step",
+    )
     head = [first, "runs"] + [m.replace("_", " ") for m in metrics] + ["IQM success"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for label, st in rows.items():
         n = next(iter(st.values()))["n"]
         cells = [_cell(st[m], 4) if m in st else "-" for m in metrics]
         lines.append(
-            f"| {label} | {n} | " + " | ".join(cells) + f" | {st['success_rate']['iqm']:.3g} |"
+            f"| {label} | {n} | "
+            + " | ".join(cells)
+            + f" | {st['episode/success_rate']['iqm']:.3g} |"
         )
     return "\n".join(lines) + "\n"
 

@@ -14,6 +14,7 @@ from pathlib import Path
 
 from sparsecomm.configs import ILConfig, RLConfig
 from sparsecomm.jsonfile import read_json
+from sparsecomm.metric_names import aliased_results
 
 RL_LAMS = (0.01, 0.005, 0.001, 0.0)
 """Paper, section V: the RL penalty weights."""
@@ -76,9 +77,10 @@ def expert_index(run: Path) -> int:
         )
     runs = [
         (i, r)
-        for i, r in enumerate(res["runs"])
+        for i, r in enumerate(aliased_results(res)["runs"])
         if float(r["lam"]) == 0.0 and r.get("budget") is None
     ]
     if not runs:
         raise ValueError(f"the rl part in {run} has no lambda = 0 runs")
-    return min(runs, key=lambda p: (-p[1]["success_rate"], p[1]["episode_length"]))[0]
+    best = min(runs, key=lambda p: (-p[1]["episode/success_rate"], p[1]["episode/episode_length"]))
+    return best[0]

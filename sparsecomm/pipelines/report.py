@@ -73,6 +73,10 @@ def collect(out: Path, plan: Sequence[Part]) -> dict:
     return summary
 
 
+POINT_METRICS = ("channel/bits_per_step", "episode/success_rate", "episode/group_reward")
+"""The metrics of each method's point on the Pareto plot (``stats.plot_pareto``)."""
+
+
 def _points(summary: dict) -> list[dict]:
     def tup(st, m):
         return (st[m]["mean"], st[m]["ci_low"], st[m]["ci_high"])
@@ -81,15 +85,11 @@ def _points(summary: dict) -> list[dict]:
     for part, group in (("rl", "RL through the channel"), ("imitation", "imitation (oracle)")):
         for lam, st in summary.get(part, {}).items():
             pts.append(
-                {"label": f"λ={lam:g}", "group": group}
-                | {m: tup(st, m) for m in ("bits_per_step", "success_rate", "group_reward")}
+                {"label": f"λ={lam:g}", "group": group} | {m: tup(st, m) for m in POINT_METRICS}
             )
     for name, st in summary.get("baselines", {}).items():
         label = BASELINE_LABELS[name]
-        pts.append(
-            {"label": label, "group": label}
-            | {m: tup(st, m) for m in ("bits_per_step", "success_rate", "group_reward")}
-        )
+        pts.append({"label": label, "group": label} | {m: tup(st, m) for m in POINT_METRICS})
     return pts
 
 
@@ -102,13 +102,16 @@ def write_figures(out: Path, summary: dict) -> list[Path]:
             plot_curves(
                 rl_csv,
                 out / "fig1.png",
-                ("group_reward", "episode_length"),
+                ("episode/group_reward", "episode/episode_length"),
                 title="Fig. 1: RL through the channel, group reward and episode length",
             )
         )
         made.append(
             plot_curves(
-                rl_csv, out / "fig2.png", ("bits_per_step",), title="Fig. 2: RL, bits per step"
+                rl_csv,
+                out / "fig2.png",
+                ("channel/bits_per_step",),
+                title="Fig. 2: RL, bits per step",
             )
         )
     if il_csv.exists():
@@ -116,7 +119,7 @@ def write_figures(out: Path, summary: dict) -> list[Path]:
             plot_curves(
                 il_csv,
                 out / "fig3.png",
-                ("imitation_loss", "bits_per_step"),
+                ("loss/imitation_loss", "channel/bits_per_step"),
                 title="Fig. 3: imitation of the oracle, loss and bits per step",
             )
         )

@@ -41,6 +41,7 @@ from sparsecomm.configs import ChannelConfig, ILConfig, RLConfig, from_dict
 from sparsecomm.envs.oracle import center_actions, oracle_actions, run_policy_episodes
 from sparsecomm.experiment import EVAL_SEED_OFFSET, evaluate_runs
 from sparsecomm.jsonfile import read_json, write_json
+from sparsecomm.metric_names import written_row
 from sparsecomm.pipelines import claims
 from sparsecomm.pipelines.plan import BUDGETS, IL_LAMS, RL_LAMS, Part, Sweep, expert_index
 from sparsecomm.pipelines.report import write_report
@@ -248,18 +249,15 @@ def run_scripted(args: Reproduce, out: Path) -> dict:
         for s in range(seeds):
             key = jax.random.key(args.rl.seed + EVAL_SEED_OFFSET + s)
             st = run_policy_episodes(key, env, policy, episodes)
-            runs.append(
-                {
-                    "seed": s,
-                    "lam": 0.0,
-                    "success_rate": float(np.mean(st.success)),
-                    "episode_length": float(np.mean(st.length)),
-                    "group_reward": float(np.mean(st.group_reward)),
-                    "bits_per_step": 0.0,
-                    "wire_bits_per_step": 0.0,
-                    "penalty": 0.0,
-                }
-            )
+            metrics = {
+                "success_rate": float(np.mean(st.success)),
+                "episode_length": float(np.mean(st.length)),
+                "group_reward": float(np.mean(st.group_reward)),
+                "bits_per_step": 0.0,
+                "wire_bits_per_step": 0.0,
+                "penalty": 0.0,
+            }
+            runs.append({"seed": s, "lam": 0.0, **written_row(metrics)})
         doc = {"policy": policy.__name__, "episodes_per_run": episodes, "runs": runs}
         write_json(folder / name, doc)
     return {"seeds": seeds, "episodes_per_seed": episodes}

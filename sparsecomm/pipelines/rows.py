@@ -31,19 +31,20 @@ import numpy as np
 from sparsecomm import runfolder
 from sparsecomm.deploy.wire import HEADER_BYTES, UDP_IP_BYTES
 from sparsecomm.jsonfile import write_json
+from sparsecomm.metric_names import aliased_results
 from sparsecomm.stats import bootstrap_ci, curves, first_pass, read_csv
 from sparsecomm.sweep import WALL_CSV
 
 TASKS = ("small", "paper")
 LEARNERS = ("rl", "imitation")
 COLUMNS = {
-    "success": "success_rate",
-    "episode_length": "episode_length",
-    "payload_bits": "bits_per_step",
-    "wire_bits": "wire_bits_per_step",
+    "success": "episode/success_rate",
+    "episode_length": "episode/episode_length",
+    "payload_bits": "channel/bits_per_step",
+    "wire_bits": "channel/wire_bits_per_step",
 }
 """Row field -> the evaluation metric it summarises, in every row."""
-WIRE_COLUMNS = COLUMNS | {"speaking_fraction": "speaking_fraction"}
+WIRE_COLUMNS = COLUMNS | {"speaking_fraction": "channel/speaking_fraction"}
 """Row field -> the evaluation metric it summarises, in a row of the wire form."""
 DATAGRAM_HEADER_BITS = 8 * (HEADER_BYTES + UDP_IP_BYTES)
 """376: the runtime's datagram header and MAC (19 bytes) and the IPv4 and UDP headers (28
@@ -126,7 +127,7 @@ def time_to_target(folder: str | Path) -> dict[tuple, tuple[float | None, float 
     if not (folder / "metrics.csv").exists():
         return {}
     wall = read_csv(folder / WALL_CSV) if (folder / WALL_CSV).exists() else None
-    success = curves(read_csv(folder / "metrics.csv"), "success_rate")
+    success = curves(read_csv(folder / "metrics.csv"), "episode/success_rate")
     out = {}
     for (budget, lam), (steps, vals) in success.items():
         key = (None if np.isnan(budget) else float(budget), float(lam))
@@ -156,9 +157,10 @@ def learner_of(config, learner: str) -> dict:
 def network_bits(run: dict) -> float | None:
     """Bits per step on a network of unicast links for one evaluated run (``None`` when the
     evaluation has no datagram counts)."""
-    if "datagrams_per_step" not in run or "datagram_bits_per_step" not in run:
+    datagrams, bits = "channel/datagrams_per_step", "channel/datagram_bits_per_step"
+    if datagrams not in run or bits not in run:
         return None
-    return run["datagram_bits_per_step"] + DATAGRAM_HEADER_BITS * run["datagrams_per_step"]
+    return run[bits] + DATAGRAM_HEADER_BITS * run[datagrams]
 
 
 def _wire_row(runs: list[dict], budget, lam: float, config, task: str, learner: str, times):
@@ -198,7 +200,7 @@ def rows(
     if learner not in LEARNERS:
         raise ValueError(f"learner must be one of {LEARNERS}, got {learner!r}")
     groups: dict[tuple, list[dict]] = {}
-    for run in results["runs"]:
+    for run in aliased_results(results)["runs"]:
         groups.setdefault((run.get("budget"), float(run["lam"])), []).append(run)
     out = []
     for (budget, lam), runs in groups.items():
