@@ -28,7 +28,7 @@ import jax
 import tyro
 
 from sparsecomm.budget import BudgetConfig
-from sparsecomm.configs import AgentConfig, RLConfig
+from sparsecomm.configs import AgentConfig, ExperimentalConfig, RLConfig
 from sparsecomm.envs.navigation import NavConfig
 from sparsecomm.rl import make_train
 from sparsecomm.rollout import rollout
@@ -69,7 +69,7 @@ class Args:
     """The actors' inbox: ``concat``, ``mean`` or ``attention`` (``AgentConfig.aggregate``)."""
     live_links_only: bool = True
     """With ``neighbours`` and a ``mean`` / ``attention`` inbox, compute only the live links
-    (``AgentConfig.live_links_only``); ``--no-live-links-only``: all K (K - 1), masked (the
+    (``ExperimentalConfig.live_links_only``); ``--no-live-links-only``: all K (K - 1), masked (the
     former computation)."""
     sharded: bool = False
     """Train mode: split the seeds and episodes over all local devices as ``run_sweep`` does
@@ -83,13 +83,13 @@ def main(a: Args) -> None:
         neighbours=a.neighbours,
         radius=a.radius,
         aggregate=a.aggregate,
-        live_links_only=a.live_links_only,
     )
     cfg = RLConfig(
         env=env,
         num_envs=a.num_envs,
         remat=a.remat,
         agent=agent,
+        experimental=ExperimentalConfig(live_links_only=a.live_links_only),
         budget=BudgetConfig(bits=a.budget),
     )
     tr = make_train(cfg)

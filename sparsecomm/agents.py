@@ -16,7 +16,7 @@ import jax.numpy as jnp
 
 from sparsecomm.channel import gate
 from sparsecomm.channel.team import TeamChannel
-from sparsecomm.configs import AgentConfig
+from sparsecomm.configs import AgentConfig, ExperimentalConfig
 from sparsecomm.scaling import AttentionPool, check_fits, inbox_features
 
 
@@ -106,12 +106,14 @@ class Team:
         num_actions: int,
         links: TeamChannel,
         state_dim: int,
+        experimental: ExperimentalConfig | None = None,
     ):
         """``links``: the team's channel (``channel.build``): each link's C message
         elements and the gate the head emits beside them (``links.signal_elements``), and the
         width of the inbox each actor reads (``links.inbox_width``: every link's message,
         news flags under ``on_silence = "hold"``, and with ``AgentConfig.reads_sent`` what the
-        agent's own links last delivered)."""
+        agent's own links last delivered). ``experimental``: the message head's initial
+        biases and whether only the live links are computed (``ExperimentalConfig``)."""
         check_fits(cfg, num_agents)
         if links.news_inputs and cfg.aggregate != "concat":
             raise ValueError(
@@ -126,6 +128,9 @@ class Team:
         self.num_actions = num_actions
         self.num_elements = num_elements
         self.links = links
+        experimental = ExperimentalConfig() if experimental is None else experimental
+        self.experimental = experimental
+        """The message head's initial biases, and whether only live links are computed."""
         """The team's own channel (``channel.build``)."""
         self.reads_sent = cfg.reads_sent
         """Each actor's inbox ends with the last message each of its own links delivered."""
@@ -146,10 +151,10 @@ class Team:
             num_actions,
             num_agents - 1,
             links.signal_elements,
-            cfg.message_bias_init,
+            experimental.message_bias_init,
             cfg.message_gate,
             cfg.aggregate == "attention",
-            cfg.gate_bias_init if links.gated else None,
+            experimental.gate_bias_init if links.gated else None,
         )
         self.critic = Critic(cfg.critic_hidden, num_agents)
 

@@ -102,18 +102,6 @@ class BudgetConfig:
     below. ours."""
     success_ema: float = 0.1
     """Weight, in (0, 1], of the newest update in the moving average of the success rate. ours."""
-    decoupled: bool = False
-    """Apply the bit penalty as its own plain gradient step on the message head after the
-    optimiser's step (like AdamW's weight decay), ``head -= decoupled_lr * weight *
-    grad_head(mean penalty)``, instead of inside the loss that Adam normalises: inside the loss,
-    Adam rescales the penalty's gradient on the head to full steps once it outweighs the task's;
-    outside, the step is proportional to the price. ours: off (docs/budget.md compares them)."""
-    decoupled_lr: float = 0.02
-    """Step size of the decoupled penalty step (> 0, per unit of weight). ours: at the engaging
-    weight 0.01 a head bias whose element is near silence (penalty gradient ~5 per unit of
-    pre-activation) moves by ~1e-3 per update, the size of an Adam step at lr 1e-3, so the task
-    and the price start out even (docs/budget.md, "The budget, RL")."""
-
     per_link: bool = False
     """Count ``bits`` (and the target, and the bits the controller measures) per link that
     exists, per step, instead of for the whole team: the controller sees the team's payload bits
@@ -136,7 +124,6 @@ class BudgetConfig:
             "halving_updates": self.halving_updates > 0 and math.isfinite(self.halving_updates),
             "hold_success": 0 <= self.hold_success <= 1,
             "success_ema": 0 < self.success_ema <= 1,
-            "decoupled_lr": self.decoupled_lr > 0 and math.isfinite(self.decoupled_lr),
         }
         allowed = {
             "relief_lr": "None or finite and > 0",
@@ -274,26 +261,28 @@ def update(cfg: BudgetConfig, state: BudgetState, bits, success) -> BudgetState:
 
 
 def decoupled_update(
-    cfg: BudgetConfig, params: dict, message_penalty, hidden, valid, price, penalty
+    lr: float | None, params: dict, message_penalty, hidden, valid, price, penalty
 ):
-    """A learner's parameters after the decoupled penalty step (unchanged unless
-    ``cfg.decoupled``). ``message_penalty(head, hidden, penalty)`` is ``Team.message_penalty``
-    and ``penalty`` the channel's cost of each link (``ChannelConfig.link_penalty``);
-    ``hidden`` (T, B, K, H) and ``valid`` (T, B) come from the update's rollout."""
-    if not cfg.decoupled:
+    """A learner's parameters after the decoupled penalty step of size ``lr`` (unchanged when
+    ``lr`` is None: the penalty is in the loss; ``ExperimentalConfig.decoupled``).
+    ``message_penalty(head, hidden, penalty)`` is ``Team.message_penalty`` and ``penalty`` the
+    channel's cost of each link (``ChannelConfig.link_penalty``); ``hidden`` (T, B, K, H) and
+    ``valid`` (T, B) come from the update's rollout."""
+    if lr is None:
         return params
     actor = penalty_step(
-        cfg, params["actor"], lambda head: message_penalty(head, hidden, penalty), valid, price
+        lr, params["actor"], lambda head: message_penalty(head, hidden, penalty), valid, price
     )
     return {**params, "actor": actor}
 
 
-def penalty_step(cfg: BudgetConfig, actor_params: dict, penalty_of_head, valid, price) -> dict:
-    """The decoupled penalty step (``BudgetConfig.decoupled``) on the actors' ``message`` head.
+def penalty_step(lr: float, actor_params: dict, penalty_of_head, valid, price) -> dict:
+    """The decoupled penalty step (``ExperimentalConfig.decoupled``) on the actors' ``message``
+    head.
 
     ``penalty_of_head(head) -> (T, B, K)`` is the bit penalty of each step's messages as a
     function of the head alone (the GRU states held fixed, ``Team.message_penalty``); its mean
-    over the valid steps is what the head descends, by ``decoupled_lr * price``.
+    over the valid steps is what the head descends, by ``lr * price``.
     """
     params = actor_params["params"]
     valid = valid.astype(jnp.float32)
@@ -303,6 +292,6 @@ def penalty_step(cfg: BudgetConfig, actor_params: dict, penalty_of_head, valid, 
         return (per_step * valid).sum() / jnp.maximum(valid.sum(), 1.0)
 
     grads = jax.grad(mean_penalty)(params["message"])
-    size = cfg.decoupled_lr * price
+    size = lr * price
     head = jax.tree.map(lambda p, g: p - size * g, params["message"], grads)
     return {**actor_params, "params": {**params, "message": head}}

@@ -71,14 +71,6 @@ class AgentConfig:
     """One set of actor parameters for all agents, with a one-hot agent id appended to the input.
     ours: True (docs/rl.md, "How the defaults were chosen"). Paper/SPEC: separate parameters per
     agent (``--config.agent.no-share-params``, the paper-faithful option)."""
-    message_bias_init: float = 0.0
-    """Initial bias of the message head's pre-sigmoid output (finite): 0 starts every element at
-    z = 0.5 (flax's default, as the paper); -4 starts near silence (z = 0.018, ~0.3 payload bits
-    per link). ours: 0, the paper's (docs/budget.md, "Tried, and not kept as defaults")."""
-    gate_bias_init: float = 0.0
-    """With ``ChannelConfig.link_gate``: initial bias of each link's gate in the message head
-    (finite; the gate opens with probability sigmoid(bias) at first). 0 starts every link open
-    half the time; -2 starts it open 12% of the time. ours: 0 (docs/wire.md compares them)."""
     message_gate: str = "sigmoid"
     """How the message head's output becomes the signal z in [0, 1]: ``sigmoid`` (paper) or
     ``hard``, a hard sigmoid whose silence is exact (z = 0, 0 bits) and reversible (a silent
@@ -102,12 +94,6 @@ class AgentConfig:
     heard) or ``attention`` (attention over them, ``scaling.AttentionPool``, plus the fraction
     heard); ``mean`` and ``attention`` are permutation invariant and do not grow with K.
     ours: ``concat`` (paper)."""
-    live_links_only: bool = True
-    """With ``neighbours`` k and a ``mean`` or ``attention`` inbox, on a channel that can list
-    its links (``ChannelConfig.lists_links``): the rollout computes only the K k live links,
-    listed by recipient, instead of all K (K - 1) and masking the others: the same messages,
-    bits and penalty (docs/scaling.md), at a cost that grows with the live links. False: the
-    masked computation (for comparison). ours: True."""
     reads_sent: bool = False
     """Under ``ChannelConfig.on_silence = "hold"``: each actor also reads, per link it sends on,
     the last message that link delivered (what its recipient holds on a clean channel: the
@@ -123,11 +109,95 @@ class AgentConfig:
                 raise _bad("AgentConfig", name, v, "an integer >= 1")
         if self.message_gate not in GATES:
             raise _bad("AgentConfig", "message_gate", self.message_gate, f"one of {GATES}")
-        if not math.isfinite(self.message_bias_init):
-            raise _bad("AgentConfig", "message_bias_init", self.message_bias_init, "finite")
-        if not math.isfinite(self.gate_bias_init):
-            raise _bad("AgentConfig", "gate_bias_init", self.gate_bias_init, "finite")
         check_agent_fields(self.neighbours, self.radius, self.aggregate, self.hears)
+
+
+@dataclasses.dataclass(frozen=True)
+class ExperimentalConfig:
+    """Knobs kept for comparison: each was measured against the default beside it and not kept
+    (the docs page named in each field has the measurement). The defaults are what every preset
+    and pipeline runs; a run that changes one is an experiment."""
+
+    message_bias_init: float = 0.0
+    """Initial bias of the message head's pre-sigmoid output (finite): 0 starts every element at
+    z = 0.5 (flax's default, as the paper); -4 starts near silence (z = 0.018, ~0.3 payload bits
+    per link). ours: 0, the paper's (docs/budget.md, "Tried, and not kept as defaults")."""
+    gate_bias_init: float = 0.0
+    """With ``ChannelConfig.link_gate``: initial bias of each link's gate in the message head
+    (finite; the gate opens with probability sigmoid(bias) at first). 0 starts every link open
+    half the time; -2 starts it open 12% of the time. ours: 0 (docs/wire.md compares them)."""
+    live_links_only: bool = True
+    """With ``AgentConfig.neighbours`` k and a ``mean`` or ``attention`` inbox, on a channel
+    that can list its links (``ChannelConfig.lists_links``): the rollout computes only the K k
+    live links, listed by recipient, instead of all K (K - 1) and masking the others: the same
+    messages, bits and penalty (docs/scaling.md), at a cost that grows with the live links.
+    False: the masked computation (for comparison). ours: True."""
+    decoupled: bool = False
+    """Apply the bit penalty as its own plain gradient step on the message head after the
+    optimiser's step (like AdamW's weight decay), ``head -= decoupled_lr * weight *
+    grad_head(mean penalty)``, instead of inside the loss that Adam normalises: inside the loss,
+    Adam rescales the penalty's gradient on the head to full steps once it outweighs the task's;
+    outside, the step is proportional to the price. ours: off (docs/budget.md compares them)."""
+    decoupled_lr: float = 0.02
+    """Step size of the decoupled penalty step (> 0, per unit of weight). ours: at the engaging
+    weight 0.01 a head bias whose element is near silence (penalty gradient ~5 per unit of
+    pre-activation) moves by ~1e-3 per update, the size of an Adam step at lr 1e-3, so the task
+    and the price start out even (docs/budget.md, "The budget, RL")."""
+    penalty_delay: int = 0
+    """RL only: updates at the start of training without the bit penalty (>= 0); then its
+    weight grows linearly to lambda over ``penalty_ramp`` updates. ours: 0, the paper's
+    objective from the first update (the paper mentions no schedule; docs/reproduce.md measures
+    a delay)."""
+    penalty_ramp: int = 0
+    """RL only: updates over which the penalty weight grows from 0 to lambda after
+    ``penalty_delay`` (>= 0; 0: at once). ours: 0."""
+
+    @property
+    def decoupled_step(self) -> float | None:
+        """The decoupled penalty step's size, or None when the penalty is in the loss."""
+        return self.decoupled_lr if self.decoupled else None
+
+    def __post_init__(self):
+        for name in ("message_bias_init", "gate_bias_init"):
+            if not math.isfinite(getattr(self, name)):
+                raise _bad("ExperimentalConfig", name, getattr(self, name), "finite")
+        if not (self.decoupled_lr > 0 and math.isfinite(self.decoupled_lr)):
+            raise _bad("ExperimentalConfig", "decoupled_lr", self.decoupled_lr, "finite and > 0")
+        for name in ("penalty_delay", "penalty_ramp"):
+            if not _integer(getattr(self, name)) or getattr(self, name) < 0:
+                raise _bad("ExperimentalConfig", name, getattr(self, name), "an integer >= 0")
+
+
+MOVED_FIELDS = {
+    ("agent", "message_bias_init"): "message_bias_init",
+    ("agent", "gate_bias_init"): "gate_bias_init",
+    ("agent", "live_links_only"): "live_links_only",
+    ("budget", "decoupled"): "decoupled",
+    ("budget", "decoupled_lr"): "decoupled_lr",
+    ("penalty_delay",): "penalty_delay",
+    ("penalty_ramp",): "penalty_ramp",
+}
+"""Fields of a learner's config that now live in :class:`ExperimentalConfig`, by their old
+place (section, field; or a learner's own field): a config written before reads back with
+them moved (:func:`upgrade`)."""
+
+
+def upgrade(data: dict) -> dict:
+    """A learner config's dict (``to_dict``, a checkpoint's or an exported team's
+    ``config.json``) with the fields of :data:`MOVED_FIELDS` moved from their old place into
+    ``experimental``; a dict already in today's layout is returned as it is."""
+    if not isinstance(data, dict):
+        return data
+    data = {k: dict(v) if isinstance(v, dict) else v for k, v in data.items()}
+    moved = {}
+    for old, new in MOVED_FIELDS.items():
+        section = data if len(old) == 1 else data.get(old[0])
+        if isinstance(section, dict) and old[-1] in section:
+            moved[new] = section.pop(old[-1])
+    if moved:
+        experimental = data.get("experimental")
+        data["experimental"] = {**moved, **(experimental if isinstance(experimental, dict) else {})}
+    return data
 
 
 @dataclasses.dataclass(frozen=True)
@@ -173,6 +243,8 @@ class LearnerConfig:
     seed: int = 0
     """Base PRNG seed, an integer in [0, :data:`MAX_SEED`] (the PRNG's 32 bits, its docstring
     says why); seed s of a sweep uses ``seed + s``. ours: 0."""
+    experimental: ExperimentalConfig = ExperimentalConfig()
+    """Knobs kept for comparison, not kept as defaults (:class:`ExperimentalConfig`)."""
 
     @property
     def task(self) -> str:
@@ -205,8 +277,8 @@ class LearnerConfig:
                 ">= 1 when lr_final is set, else >= 0",
             ),
             **self.channel.team_checks(self.agent.reads_sent, self.agent.aggregate),
-            "budget.decoupled": (  # its penalty step reprices the head's gates, not the news'
-                not self.budget.decoupled or not self.channel.opens_on_news,
+            "experimental.decoupled": (  # its step reprices the head's gates, not the news'
+                not self.experimental.decoupled or not self.channel.opens_on_news,
                 "False with channel.news_margin set",
             ),
         }
@@ -253,13 +325,6 @@ class RLConfig(LearnerConfig):
     (docs/tuning.md, per-agent advantage standardisation)."""
     vf_coef: float = 0.5
     """Weight of the critic's squared-error loss (>= 0). ours."""
-    penalty_delay: int = 0
-    """Updates at the start of training without the bit penalty (>= 0); then its weight grows
-    linearly to lambda over ``penalty_ramp`` updates. ours: 0, the paper's objective from the
-    first update (the paper mentions no schedule; docs/reproduce.md measures a delay)."""
-    penalty_ramp: int = 0
-    """Updates over which the penalty weight grows from 0 to lambda after ``penalty_delay``
-    (>= 0; 0: at once). ours: 0."""
     reward_scale: float = 0.01
     """Rewards are multiplied by this (> 0) for learning; logs stay in the paper's units. SPEC
     calibration: 1/100."""
@@ -307,8 +372,6 @@ class RLConfig(LearnerConfig):
             "gae_lambda": (0 <= self.gae_lambda <= 1, "in [0, 1]"),
             "ent_coef": (self.ent_coef >= 0, ">= 0"),
             "vf_coef": (self.vf_coef >= 0, ">= 0"),
-            "penalty_delay": (self.penalty_delay >= 0, ">= 0"),
-            "penalty_ramp": (self.penalty_ramp >= 0, ">= 0"),
             "reward_scale": (self.reward_scale > 0, "> 0"),
         }
 
@@ -355,7 +418,7 @@ def from_dict(cls, data: dict):
         raise ValueError(f"{cls.__name__} must be a JSON object of its fields, got {data!r}")
     hints = typing.get_type_hints(cls)
     if isinstance(cls, type) and issubclass(cls, LearnerConfig):  # its task names env's class
-        data = dict(data)
+        data = upgrade(data)
         task = data.pop("task", registry.DEFAULT)  # written before tasks had names
         if not isinstance(task, str):
             raise _bad(cls.__name__, "task", task, "a registered task's name (a string)")
@@ -436,6 +499,10 @@ class ILConfig(LearnerConfig):
             "beta_start": (0 <= self.beta_start <= 1, "in [0, 1]"),
             "beta_end": (0 <= self.beta_end <= 1, "in [0, 1]"),
             "beta_decay_updates": (self.beta_decay_updates >= 0, ">= 0"),
+            "experimental.penalty_delay": (
+                self.experimental.penalty_delay == 0 and self.experimental.penalty_ramp == 0,
+                "0, and penalty_ramp 0 (a penalty schedule is RL's)",
+            ),
         }
 
 

@@ -107,7 +107,7 @@ def make_imitate(config: ILConfig, expert: Expert | None = None) -> Learner:
             expert=expert,
             beta=beta,
             remat=config.remat,
-            keep_hidden=config.budget.decoupled,
+            keep_hidden=config.experimental.decoupled,
         )
         nll = -jnp.take_along_axis(traj.log_probs, traj.expert_actions[..., None], -1)[..., 0]
         mean = masked_mean(traj.valid)

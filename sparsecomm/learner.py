@@ -122,7 +122,15 @@ def make_team(config: LearnerConfig) -> tuple[Task, Team]:
     env = registry.make(config.env)
     check_fits(config.agent, env.num_agents)
     links = channel.build(config.channel, env.num_agents, reads_sent=config.agent.reads_sent)
-    team = Team(config.agent, env.num_agents, env.obs_dim, env.num_actions, links, env.state_dim)
+    team = Team(
+        config.agent,
+        env.num_agents,
+        env.obs_dim,
+        env.num_actions,
+        links,
+        env.state_dim,
+        config.experimental,
+    )
     return env, team
 
 
@@ -161,7 +169,7 @@ def make_learner(
     def update(state: LearnerState):
         key, k_roll = jax.random.split(state.key)
         price = bit_budget.weight(state.budget)
-        in_loss = 0.0 if config.budget.decoupled else price  # else a step of its own, below
+        in_loss = 0.0 if config.experimental.decoupled else price  # else its own step, below
         if replay is None:
             params, opt_state, aux, norms = gradient_step(
                 state.params, state.opt_state, k_roll, in_loss, state.update
@@ -173,7 +181,7 @@ def make_learner(
                 config.num_envs, replay, gradient_step, state, k_roll, in_loss
             )
         params = bit_budget.decoupled_update(
-            config.budget,
+            config.experimental.decoupled_step,
             params,
             team.message_penalty,
             aux.hidden,

@@ -13,7 +13,7 @@ targets, and ``A = G - V(S_t)`` held constant (standardised per agent by default
 weight ``w = lam * reward_scale / std(A)`` (``/ std(A)`` only when advantages are standardised)
 makes this the gradient of the paper's objective ``E[sum_t gamma^t r_t] - lam E[sum_t penalty_t]``
 up to one positive factor: ``lam`` is the price of one bit in the paper's reward units
-(optionally switched on late, ``RLConfig.penalty_delay`` and ``penalty_ramp``). With a bit
+(optionally switched on late, ``ExperimentalConfig.penalty_delay``, ``penalty_ramp``). With a bit
 budget (``RLConfig.budget``, ``sparsecomm.budget``) the price is set each update by the
 controller from the bits the update's episodes really sent, inside the compiled update. The
 gradient of the whole expression is taken through the episode: through every agent's GRU and
@@ -109,7 +109,7 @@ def make_train(config: RLConfig) -> Learner:
             key,
             config.num_envs,
             remat=config.remat,
-            keep_hidden=config.budget.decoupled,
+            keep_hidden=config.experimental.decoupled,
         )
         values = jax.lax.map(lambda s: team.value(params["critic"], s), traj.states)
         adv, targets, adv_std = advantages(config, traj, values)
@@ -159,7 +159,8 @@ def _objective(config: RLConfig, traj: Trajectory, pg, values, targets, lam, upd
     ``reward_scale``, and by 1 / std of the advantages (``adv_std`` (K,), None when they are
     not standardised)."""
     penalty_weight = lam * config.reward_scale
-    penalty_weight *= penalty_schedule(update, config.penalty_delay, config.penalty_ramp)
+    ex = config.experimental
+    penalty_weight *= penalty_schedule(update, ex.penalty_delay, ex.penalty_ramp)
     if adv_std is not None:
         penalty_weight = penalty_weight / jax.lax.stop_gradient(adv_std.mean())
     entropy = -(jnp.exp(traj.log_probs) * traj.log_probs).sum(-1)
@@ -222,7 +223,7 @@ def _make_ppo(config: RLConfig, env, team, tx) -> Learner:
             params["actor"],
             key,
             config.num_envs,
-            keep_hidden=config.budget.decoupled,
+            keep_hidden=config.experimental.decoupled,
         )
         adv, targets, adv_std = advantages(config, traj, critic(params, traj.states))
         logp = action_log_probs(traj)

@@ -427,12 +427,12 @@ def _record(sent, link_bits, later: bool, aside: Aside, **core) -> Trajectory:
 
 def listed_links(team: Team, channel_cfg: ChannelConfig) -> bool:
     """The rollout computes only the live links, listed by recipient
-    (``AgentConfig.live_links_only``): a team that hears its ``neighbours`` nearest (or its
+    (``ExperimentalConfig.live_links_only``): a team that hears its ``neighbours`` nearest (or its
     ``ring``) through a ``mean`` or ``attention`` inbox, on a channel that can list
     them (``ChannelConfig.lists_links``). Otherwise every one of the K (K - 1) links is computed
     and the ones that do not exist are masked (the same numbers, at a cost O(K^2))."""
     return (
-        team.cfg.live_links_only
+        team.experimental.live_links_only
         and team.cfg.neighbours is not None
         and team.cfg.aggregate != "concat"
         and channel_cfg.lists_links

@@ -14,7 +14,7 @@ the concatenated inbox) and one in the task (``NavConfig.goal_view``: who sees w
   receives 0 there. Bits and the penalty stay per link, counted by
   :func:`sparsecomm.channel.transmit` from the real symbols as for the full team. With
   ``neighbours`` and a ``mean`` or ``attention`` inbox, :func:`nearest_senders` lists the live
-  links by recipient and the rollout computes only those (``AgentConfig.live_links_only``).
+  links by recipient and the rollout computes only those (``ExperimentalConfig.live_links_only``).
 - **aggregate** (``aggregate``): ``concat`` feeds the actor every link's message in a fixed
   order, (K - 1) C inputs (the paper's). ``mean`` feeds the mean of the messages of the senders
   it heard (C inputs) and ``attention`` a softmax-weighted sum of them (:class:`AttentionPool`,

@@ -29,7 +29,7 @@ import numpy as np
 from tqdm import tqdm
 
 from sparsecomm import checkpoint, learners
-from sparsecomm.configs import to_dict
+from sparsecomm.configs import to_dict, upgrade
 from sparsecomm.errors import CheckpointError, DivergedError, RunError
 from sparsecomm.learner import Learner
 from sparsecomm.metric_names import written
@@ -522,7 +522,7 @@ def _differences(old, new, path: str = "", now: str = "now") -> list[str]:
 ADDED_FIELDS = {
     ("config", "task"): "navigation",
     ("agent", "hears"): "nearest",
-    ("agent", "live_links_only"): True,
+    ("experimental", "live_links_only"): True,
     ("env", "success_rule"): "together",
     ("env", "park_speed"): 0.3,
     ("agent", "reads_sent"): False,
@@ -566,6 +566,9 @@ def differences(old: dict, new: dict, may_change=RESUME_MAY_CHANGE, now: str = "
     config = old.get("config", {})
     if not isinstance(config, dict):
         return [f"config (checkpoint: {config!r}, {now}: an object of the config's fields)"]
+    config = upgrade(config)  # fields since moved, in today's places
+    if "experimental" in new["config"]:  # written before the section: its fields one by one
+        config = {"experimental": {}} | config
     old = {**old, "kind": _kind_name(old.get("kind", _MISSING))}
     new = {**new, "kind": _kind_name(new["kind"])}
     old_cfg = {k: v for k, v in config.items() if k not in may_change}

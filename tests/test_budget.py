@@ -10,7 +10,7 @@ import pytest
 
 from sparsecomm import budget, channel
 from sparsecomm.budget import BudgetConfig
-from sparsecomm.configs import AgentConfig, ChannelConfig, ILConfig, RLConfig
+from sparsecomm.configs import AgentConfig, ChannelConfig, ExperimentalConfig, ILConfig, RLConfig
 from sparsecomm.envs.navigation import NavConfig
 from sparsecomm.imitation import make_imitate
 from sparsecomm.rl import make_train
@@ -208,7 +208,7 @@ def test_message_penalty_of_the_head_matches_the_rollout(share, channel_cfg, fas
 
 @pytest.mark.slow
 def test_decoupled_penalty_moves_only_the_message_head_by_its_own_gradient(fast_compile):
-    cfg = dataclasses.replace(TINY_RL, budget=dataclasses.replace(FAST, decoupled=True))
+    cfg = dataclasses.replace(TINY_RL, budget=FAST, experimental=ExperimentalConfig(decoupled=True))
     tr = make_train(cfg)
     state = tr.init(jax.random.key(0), 0.3)  # a fixed price 0.3, no budget
     new, m = jax.jit(tr.update)(state)
@@ -219,7 +219,7 @@ def test_decoupled_penalty_moves_only_the_message_head_by_its_own_gradient(fast_
     assert max(head.values()) > 0 and max(jax.tree.leaves(moved)) == 0.0
     # ... and it lowers the penalty of the messages the head would send from the same states.
     np.testing.assert_array_less(0.0, float(m["penalty"]))
-    trb = make_train(dataclasses.replace(cfg, budget=FAST))  # the penalty inside Adam's loss
+    trb = make_train(dataclasses.replace(cfg, experimental=ExperimentalConfig()))  # in the loss
     coupled, _ = jax.jit(trb.update)(state)
     moved = jax.tree.map(lambda a, b: float(jnp.abs(a - b).max()), coupled.params, free.params)
     assert max(jax.tree.leaves(moved["actor"]["params"]["Dense_0"])) > 0  # reaches the trunk
@@ -227,8 +227,9 @@ def test_decoupled_penalty_moves_only_the_message_head_by_its_own_gradient(fast_
 
 @pytest.mark.slow
 def test_tiny_rl_run_with_decoupled_penalty_meets_its_budget(fast_compile):
-    fast = dataclasses.replace(FAST, decoupled=True, dual_lr=0.5)
-    tr = make_train(dataclasses.replace(TINY_RL, budget=fast))
+    fast = dataclasses.replace(FAST, dual_lr=0.5)
+    decoupled = ExperimentalConfig(decoupled=True)
+    tr = make_train(dataclasses.replace(TINY_RL, budget=fast, experimental=decoupled))
     _, m = jax.jit(jax.vmap(tr.train, (0, None, 0)))(
         jnp.stack([jax.random.key(0)] * 2), 0.0, jnp.array([jnp.nan, 8.0])
     )

@@ -65,7 +65,7 @@ def _refused(argv, capsys, field):
         (["train", "--config.channel.news-margin", "0.1"], "ChannelConfig.news_margin"),
         (["train", "--preset", "silent", "--config.channel.news-margin", "2"], "news_margin"),
         (["train", "--config.agent.reads-sent"], "RLConfig.agent.reads_sent"),
-        (["train", "--preset", "silent", "--config.budget.decoupled"], "budget.decoupled"),
+        (["train", "--preset", "silent", "--config.experimental.decoupled"], "decoupled"),
         (["train", "--preset", "nope"], "--preset"),
         (["eval", "--preset", "small"], "--preset"),
         # Upper bounds (configs.MAX_UPDATES, configs.MAX_SEED, experiment.MAX_FPS).

@@ -9,7 +9,7 @@ import pytest
 
 from sparsecomm import checkpoint
 from sparsecomm.channel import link_tables
-from sparsecomm.configs import AgentConfig, ChannelConfig, RLConfig
+from sparsecomm.configs import AgentConfig, ChannelConfig, ExperimentalConfig, RLConfig
 from sparsecomm.envs.navigation import NavConfig
 from sparsecomm.errors import CheckpointError
 from sparsecomm.rl import discounted_targets, make_train, penalty_schedule
@@ -152,7 +152,7 @@ def test_penalty_schedule_delays_and_ramps_the_weight(fast_compile):
 
     assert f(0, 0, 0) == 1.0 and f(4, 5, 0) == 0.0 and f(5, 5, 0) == 1.0
     assert [f(u, 2, 4) for u in range(8)] == [0, 0, 0.25, 0.5, 0.75, 1, 1, 1]
-    cfg = dataclasses.replace(TINY, penalty_delay=2)
+    cfg = dataclasses.replace(TINY, experimental=ExperimentalConfig(penalty_delay=2))
     _, m = jax.jit(make_train(cfg).train)(jax.random.key(0), 1.0)
     w = np.asarray(m["penalty_weight"])
     assert w[0] == w[1] == 0.0 and w[2] > 0.0

@@ -10,7 +10,7 @@ import pytest
 
 from sparsecomm.channel import listed_pairs
 from sparsecomm.channel import slots as by_sender
-from sparsecomm.configs import AgentConfig, ChannelConfig, RLConfig
+from sparsecomm.configs import AgentConfig, ChannelConfig, ExperimentalConfig, RLConfig
 from sparsecomm.envs.navigation import NavConfig, NavigationEnv
 from sparsecomm.learner import make_team
 from sparsecomm.rollout import episode_metrics, rollout
@@ -284,7 +284,7 @@ def test_a_k10_team_on_live_links_plays_as_on_masked_links(fast_compile, aggrega
     agent = AgentConfig(neighbours=2, aggregate=aggregate, hears=hears)
     runs = {}
     for only in (True, False):
-        cfg = RLConfig(env=env, agent=dataclasses.replace(agent, live_links_only=only))
+        cfg = RLConfig(env=env, agent=agent, experimental=ExperimentalConfig(live_links_only=only))
         env_, team = make_team(cfg)
         params = jax.jit(team.init)(jax.random.key(0))["actor"]
 
