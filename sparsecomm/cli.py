@@ -14,31 +14,11 @@ only parses.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import sys
-import typing
 from pathlib import Path
 
-from sparsecomm import learners
-from sparsecomm.codestats import FitCode, fit_code
-from sparsecomm.configs import PRESETS
-from sparsecomm.deploy.args import Deploy
-from sparsecomm.deploy.launcher import deploy
-from sparsecomm.envs import registry
-from sparsecomm.errors import RunError
-from sparsecomm.experiment import (
-    Eval,
-    Export,
-    Imitate,
-    Render,
-    Train,
-    evaluate,
-    export_team,
-    render,
-    train,
-)
-from sparsecomm.pipelines.paper_task import PaperTask, paper_task
-from sparsecomm.pipelines.reproduce import Reproduce, reproduce
-from sparsecomm.sharding import use_host_cores
+from sparsecomm.cmdline import check_device_counts, refuse_empty_paths
 
 
 def _take(flag: str, argv: list[str]) -> tuple[str | None, list[str]]:
@@ -51,46 +31,55 @@ def _take(flag: str, argv: list[str]) -> tuple[str | None, list[str]]:
     return None, argv
 
 
-COMMANDS = {
-    learners.RL.command: (Train, train),
-    learners.IMITATION.command: (Imitate, train),
-    "eval": (Eval, evaluate),
-    "render": (Render, render),
-    "export": (Export, export_team),
-    "fit-code": (FitCode, fit_code),
-    "reproduce": (Reproduce, reproduce),
-    "paper-task": (PaperTask, paper_task),
-    "deploy": (Deploy, deploy),
-}
+@functools.cache
+def commands() -> dict:
+    """Every command's arguments class and function, by name. Imported when a command is
+    parsed, not with this module: :func:`script` checks the environment before JAX starts."""
+    from sparsecomm import learners
+    from sparsecomm.codestats import FitCode, fit_code
+    from sparsecomm.deploy.args import Deploy
+    from sparsecomm.deploy.launcher import deploy
+    from sparsecomm.experiment import (
+        Eval,
+        Export,
+        Imitate,
+        Render,
+        Train,
+        evaluate,
+        export_team,
+        render,
+        train,
+    )
+    from sparsecomm.pipelines.paper_task import PaperTask, paper_task
+    from sparsecomm.pipelines.reproduce import Reproduce, reproduce
 
-
-def _refuse_empty_paths(argv: list[str]) -> None:
-    """Refuse an empty value for a path flag of the command (``--out ''``, ``--run=``): the
-    parser would read it as the current folder (``Path('')`` is ``.``)."""
-    if not argv or argv[0] not in COMMANDS:
-        return
-    cls = COMMANDS[argv[0]][0]
-    hints = typing.get_type_hints(cls)
-    paths = {
-        "--" + f.name.replace("_", "-"): f.name
-        for f in dataclasses.fields(cls)
-        if Path in (hints[f.name], *typing.get_args(hints[f.name]))
+    return {
+        learners.RL.command: (Train, train),
+        learners.IMITATION.command: (Imitate, train),
+        "eval": (Eval, evaluate),
+        "render": (Render, render),
+        "export": (Export, export_team),
+        "fit-code": (FitCode, fit_code),
+        "reproduce": (Reproduce, reproduce),
+        "paper-task": (PaperTask, paper_task),
+        "deploy": (Deploy, deploy),
     }
-    for i, arg in enumerate(argv[1:], 1):
-        flag, eq, value = arg.partition("=")
-        empty = value == "" if eq else i + 1 < len(argv) and argv[i + 1] == ""
-        if flag in paths and empty:
-            raise ValueError(f"{cls.__name__}.{paths[flag]} must be a path, got ''")
 
 
 def parse(argv: list[str]):
     """The command's arguments, checked: every config's ``__post_init__`` has run."""
     import tyro
 
+    from sparsecomm import learners
+    from sparsecomm.configs import PRESETS
+    from sparsecomm.envs import registry
+
+    known = commands()
     preset, argv = _take("--preset", argv)
     task, argv = _take("--task", argv)
-    _refuse_empty_paths(argv)
     command = argv[0] if argv else None
+    if command in known:
+        refuse_empty_paths(known[command][0], argv[1:])
     if task is not None and command not in learners.COMMANDS:
         raise ValueError(
             "--task must follow 'sparsecomm train' or 'sparsecomm imitate' (the other commands "
@@ -99,7 +88,7 @@ def parse(argv: list[str]):
     if task is not None:  # checked before any work, naming the registered tasks
         task_config = registry.spec(task).config()
     if preset is not None:  # ``sparsecomm train|imitate --preset NAME [--config.* ...]``
-        if preset in PRESETS and command in COMMANDS and command not in PRESETS[preset]:
+        if preset in PRESETS and command in known and command not in PRESETS[preset]:
             serves = " and ".join(f"'sparsecomm {c}'" for c in PRESETS[preset])
             raise ValueError(f"--preset {preset} serves only {serves}, not {command!r}")
         if preset not in PRESETS or command not in PRESETS[preset]:
@@ -107,7 +96,7 @@ def parse(argv: list[str]):
                 f"--preset must be one of {sorted(PRESETS)} and follow 'sparsecomm train' or "
                 f"'sparsecomm imitate', got {preset!r}" + (f" after {command!r}" if command else "")
             )
-        cls = COMMANDS[command][0]
+        cls = known[command][0]
         out = Path("runs") / (preset if command == learners.RL.command else f"{command}_{preset}")
         config = PRESETS[preset][command]
         if task is not None:
@@ -116,12 +105,14 @@ def parse(argv: list[str]):
         prog = f"sparsecomm {command} --preset {preset}" + (f" --task {task}" if task else "")
         return tyro.cli(cls, default=default, args=argv[1:], prog=prog)
     if task is not None:  # ``sparsecomm train|imitate --task NAME [--config.* ...]``
-        cls = COMMANDS[command][0]
+        cls = known[command][0]
         default = cls(config=dataclasses.replace(cls().config, env=task_config))
         prog = f"sparsecomm {command} --task {task}"
         return tyro.cli(cls, default=default, args=argv[1:], prog=prog)
-    commands = {name: cls for name, (cls, _) in COMMANDS.items()}
-    return tyro.extras.subcommand_cli_from_dict(commands, args=argv)
+    if command in known:  # errors then name the command's fields, not tyro's inner ones
+        return tyro.cli(known[command][0], args=argv[1:], prog=f"sparsecomm {command}")
+    classes = {name: cls for name, (cls, _) in known.items()}
+    return tyro.extras.subcommand_cli_from_dict(classes, args=argv, prog="sparsecomm")
 
 
 def _fail(error: BaseException, code: int) -> SystemExit:
@@ -137,7 +128,9 @@ def main(argv: list[str] | None = None) -> None:
         cmd = parse(list(sys.argv[1:] if argv is None else argv))
     except ValueError as e:  # raised by the configs' checks while parsing, before any work
         raise _fail(e, 2) from None
-    handler = {cls: run for cls, run in COMMANDS.values()}[type(cmd)]
+    from sparsecomm.errors import RunError
+
+    handler = {cls: run for cls, run in commands().values()}[type(cmd)]
     try:
         handler(cmd)
     except RunError as e:
@@ -148,6 +141,12 @@ def script() -> None:
     """The ``sparsecomm`` command (and ``python -m sparsecomm.cli``): one CPU device per usable
     core unless the user chose a count (:func:`sparsecomm.sharding.use_host_cores`), then
     :func:`main`. In-process callers of :func:`main` keep JAX's devices as they are."""
+    try:  # before JAX reads them: its own errors would be tracebacks, XLA's a fatal error
+        check_device_counts()
+    except ValueError as e:
+        raise _fail(e, 2) from None
+    from sparsecomm.sharding import use_host_cores
+
     use_host_cores()
     main()
 

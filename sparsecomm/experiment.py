@@ -51,7 +51,7 @@ from sparsecomm.sharding import (
     use_mesh,
 )
 from sparsecomm.stats import bootstrap_ci, plot_curves
-from sparsecomm.sweep import SweepSpec, run_sweep
+from sparsecomm.sweep import SweepSpec, check_start, run_arrays, run_sweep
 
 MAX_FPS = 50
 """Most frames per second of a GIF (``sparsecomm render --fps``). A GIF stores each frame's
@@ -267,6 +267,10 @@ def train(args: Train) -> dict:
     devices = sweep_devices(len(spec.runs()))
     check_fits(trainer, len(spec.runs()), args.eval_episodes, devices)
     start = None if args.init_from is None else load_params(args.init_from, args.init_index)
+    where = "" if args.init_from is None else f"{args.init_from}:{args.init_index}"
+    if start is not None:  # refused here, before run_sweep makes the output folder
+        shapes = jax.eval_shape(jax.vmap(trainer.init), *run_arrays(cfg, spec.runs()[:1]))
+        check_start(shapes.params, start, where, f"{type(args).__name__}.init_from")
     state, runs, wall = run_sweep(
         trainer,
         spec,
@@ -279,7 +283,7 @@ def train(args: Train) -> dict:
         kind=kind.name,
         devices=devices,
         start_params=start,
-        start_from="" if args.init_from is None else f"{args.init_from}:{args.init_index}",
+        start_from=where,
     )
     actor = state.params["actor"]
     results = evaluate_runs(trainer, runs, actor, args.eval_episodes, devices=devices)

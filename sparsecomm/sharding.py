@@ -34,6 +34,8 @@ import jax
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from sparsecomm.cmdline import check_device_counts
+
 RUNS = "runs"
 """Mesh axis over which the runs of a sweep are split."""
 EPISODES = "episodes"
@@ -59,15 +61,25 @@ class Distributed:
     process_id: int | None = None
     """This process's index in ``[0, num_processes)`` (default: the cluster's)."""
 
+    def __post_init__(self):
+        n, i = self.num_processes, self.process_id
+        for name, value in (("num_processes", n), ("process_id", i)):
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int)):
+                raise ValueError(f"distributed.{name} must be an integer or None, got {value!r}")
+        if n is not None and n < 1:
+            raise ValueError(f"distributed.num_processes must be an integer >= 1, got {n}")
+        if i is not None and n is not None and not 0 <= i < n:
+            raise ValueError(
+                f"distributed.process_id must be in [0, {n - 1}] (num_processes {n}), got {i}"
+            )
+        if i is not None and i < 0:
+            raise ValueError(f"distributed.process_id must be an integer >= 0, got {i}")
+
     def initialize(self) -> None:
         """Join the cluster (a no-op unless ``enabled``). CPU collectives go over gloo."""
         if not self.enabled:
             return
         n, i = self.num_processes, self.process_id
-        if n is not None and n < 1:
-            raise ValueError(f"distributed.num_processes must be >= 1, got {n}")
-        if i is not None and n is not None and not 0 <= i < n:
-            raise ValueError(f"distributed.process_id must be in [0, {n - 1}], got {i}")
         jax.config.update("jax_cpu_collectives_implementation", "gloo")
         jax.distributed.initialize(self.coordinator_address, n, i)
 
@@ -97,9 +109,14 @@ def use_host_cores() -> int | None:
     faster per update (docs/benchmarks.md). The count changes the compiled programs, so a sweep
     gives the same numbers again on the same device count, not across counts.
 
+    A count that is not a positive integer is refused with a ``ValueError`` naming the variable
+    (:func:`sparsecomm.cmdline.check_device_counts`; the command checks it before importing JAX,
+    which fails on one it cannot read).
+
     Returns:
         The device count set, or None where the user's choice was kept.
     """
+    check_device_counts()
     if "JAX_NUM_CPU_DEVICES" in os.environ:
         return None
     if "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", ""):

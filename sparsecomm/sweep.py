@@ -285,10 +285,10 @@ def compiled(learner, sharded: bool):
     return init, steps
 
 
-def _start_from(params: dict, start: dict, where: str) -> dict:
-    """``params`` (with a run axis) with each part in ``start`` (no run axis) copied into every
-    run; a part whose shapes differ is refused, naming it."""
-    out = dict(params)
+def check_start(params: dict, start: dict, where: str, name: str = "init_from") -> None:
+    """Refuse starting parameters ``start`` (no run axis) whose parts' shapes differ from
+    ``params`` (a run axis first; arrays or ``jax.eval_shape``'s shapes), naming the part and
+    the field ``name``: a ``RunError``."""
     for part, values in start.items():
         same = jax.tree.structure(params[part]) == jax.tree.structure(values) and all(
             t.shape[1:] == np.shape(v)
@@ -296,9 +296,17 @@ def _start_from(params: dict, start: dict, where: str) -> dict:
         )
         if not same:
             raise RunError(
-                f"init_from {where}: its {part} network has other shapes than this run's "
+                f"{name} {where}: its {part} network has other shapes than this run's "
                 "(the agent config must match)"
             )
+
+
+def _start_from(params: dict, start: dict, where: str) -> dict:
+    """``params`` (with a run axis) with each part in ``start`` (no run axis) copied into every
+    run; a part whose shapes differ is refused, naming it (:func:`check_start`)."""
+    check_start(params, start, where)
+    out = dict(params)
+    for part, values in start.items():
         out[part] = jax.tree.map(
             lambda t, v: jnp.broadcast_to(jnp.asarray(v, t.dtype), t.shape), params[part], values
         )

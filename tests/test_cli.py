@@ -1,5 +1,6 @@
 """The command line end to end with tiny budgets: every artefact written, and readable."""
 
+import dataclasses
 import json
 
 import imageio.v3 as iio
@@ -229,3 +230,58 @@ def test_the_paper_preset_is_the_fast_learner_on_the_paper_task():
     serves = "--preset paper serves only 'sparsecomm train' and 'sparsecomm imitate', not 'eval'"
     with pytest.raises(ValueError, match=serves):
         parse(["eval", "--preset", "paper"])
+
+
+def _refused(argv, capsys, *words):
+    """``main(argv)`` exits 2 with one line naming ``words``, no traceback."""
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = " ".join(capsys.readouterr().err.split())  # tyro's box wraps lines
+    assert e.value.code == 2, err
+    assert "Traceback" not in err and "__tyro" not in err, err
+    assert all(word in err for word in words), err
+    return err
+
+
+def test_every_output_path_is_checked_before_any_work(tmp_path, capsys, monkeypatch):
+    """A file where a folder is wanted, for the pipelines' and deploy's outputs (a part's own
+    folder under ``out`` included): refused while parsing, naming the field, nothing written."""
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "file").write_text("kept")
+    (tmp_path / "paper").mkdir()
+    (tmp_path / "paper" / "rl").write_text("kept")
+    cases = [
+        (["paper-task", "--parts", "rl", "--results", "file"], "PaperTask.results must be a"),
+        (["paper-task", "--parts", "rl", "--out", "file"], "PaperTask.out must be a folder"),
+        (["paper-task", "--parts", "rl", "--out", "paper"], "PaperTask.out", "rl part's folder"),
+        (["reproduce", "--quick", "--out", "file"], "Reproduce.out must be a folder"),
+        (["deploy", "--out", "file"], "Deploy.out must be a folder"),
+    ]
+    for argv, *words in cases:
+        _refused(argv, capsys, *words)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "paper"]  # nothing written
+    assert [p.name for p in (tmp_path / "paper").iterdir()] == ["rl"]
+
+
+def test_errors_of_nested_fields_name_the_commands_field(capsys):
+    err = _refused(["paper-task", "--rl.lr", "-1"], capsys, "RLConfig.lr must be > 0")
+    assert "rl" in err.split("RLConfig")[0]
+    _refused(["paper-task", "--il.num-envs", "0"], capsys, "il", "ILConfig.num_envs")
+    _refused(["train", "--config.lr", "0"], capsys, "config", "RLConfig.lr")
+
+
+def test_init_from_a_run_of_another_size_is_refused_before_the_output_folder(tmp_path, capsys):
+    """An exported team whose actor has 16 hidden units, fine-tuned at 32: refused naming the
+    field, and no output folder made (nothing trained)."""
+    from sparsecomm.runfolder import learner_for
+    from sparsecomm.sweep import SweepSpec
+
+    config = RLConfig()
+    config = dataclasses.replace(config, agent=dataclasses.replace(config.agent, hidden=16))
+    actor = learner_for(config).team.init(jax.random.key(0))["actor"]
+    runs = SweepSpec(1, (0.0,), (None,)).runs()
+    team = write_team(tmp_path / "team", config, runs, jax.tree.map(lambda x: x[None], actor), 0)
+    out = tmp_path / "run"
+    argv = ["train", *TINY, "--config.agent.hidden", "32", "--init-from", str(team)]
+    _refused([*argv, "--out", str(out)], capsys, "Train.init_from", "other shapes")
+    assert not out.exists()

@@ -934,3 +934,29 @@ def test_the_launcher_exits_2_when_the_world_dies(tmp_path):
 
 def _cmdline(pid: int) -> bytes:
     return Path(f"/proc/{pid}/cmdline").read_bytes()
+
+
+def test_an_ipv6_host_is_refused_as_such():
+    for host in ("::1", "[::1]", "fe80::1"):
+        with pytest.raises(ValueError, match=r"Deploy\.host .*an IPv6 address: .*IPv4 only"):
+            Deploy(host=host)
+    with pytest.raises(ValueError, match=r"Deploy\.host .*without a port"):
+        Deploy(host="localhost:9000")
+
+
+@pytest.mark.parametrize("module", ["agent", "world"])
+def test_an_empty_secret_file_is_reported_as_given(module, tmp_path):
+    """``--secret-file ''`` is named as the empty value it is, not as the current folder."""
+    cls = {"agent": "AgentArgs", "world": "WorldArgs"}[module]
+    for flag in (["--secret-file", ""], ["--secret-file="]):
+        done = subprocess.run(
+            [sys.executable, "-m", f"sparsecomm.deploy.{module}", *flag],
+            capture_output=True,
+            text=True,
+            timeout=120,
+            cwd=tmp_path,
+        )
+        assert done.returncode == 2, done.stderr[-2000:]
+        assert f"{cls}.secret_file must be a path, got ''" in done.stderr, done.stderr[-2000:]
+        assert "'.'" not in done.stderr and "Traceback" not in done.stderr
+    assert list(tmp_path.iterdir()) == []

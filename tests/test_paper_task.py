@@ -141,3 +141,39 @@ def test_greedy_figures_are_judged_apart_from_the_sampled_ones():
     greedy = frontier.targets(greedy_table(table), (32.0, 16.0), max_length_ratio=1.25)
     assert [(t["budget"], t["met"]) for t in greedy] == [(32.0, True)]  # 16 has no greedy row
     assert greedy[0]["length_ratio"] == pytest.approx(1.2)
+
+
+def _refused(argv, capsys, *words):
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = " ".join(capsys.readouterr().err.split())  # tyro's box wraps lines
+    assert e.value.code == 2 and "Traceback" not in err and "__tyro" not in err, err
+    assert all(word in err for word in words), err
+    return err
+
+
+def test_a_part_without_the_part_it_needs_is_refused_while_parsing(tmp_path, capsys):
+    """``il_rl`` imitates the ``rl`` part's best team: without ``rl`` in ``--parts`` and no
+    finished ``rl`` part in ``out`` it is refused naming ``--parts`` and what is missing; with
+    the rl part's results there it is taken."""
+    out = tmp_path / "paper"
+    argv = ["paper-task", "--parts", "il_rl", "--out", str(out)]
+    _refused([*argv, "--results", str(tmp_path / "r")], capsys, "PaperTask.parts", "--parts",
+             "il_rl", "needs the rl part", "results.json")  # fmt: skip
+    assert list(tmp_path.iterdir()) == []
+    assert PaperTask(parts=("rl", "il_rl"), out=out).parts == ("rl", "il_rl")
+    (out / "rl").mkdir(parents=True)
+    (out / "rl" / "results.json").write_text("{}")
+    assert PaperTask(parts=("il_rl",), out=out).parts == ("il_rl",)
+
+
+@pytest.mark.parametrize(
+    "flags, field",
+    [(["--il.expert-checkpoint", "/nonexistent"], "expert_checkpoint"),
+     (["--il.expert", "checkpoint", "--il.expert-checkpoint", "runs/x"], "expert"),
+     (["--il.expert-index", "3"], "expert_index")],
+)  # fmt: skip
+def test_an_expert_given_to_the_parts_is_refused_not_ignored(flags, field, tmp_path, capsys):
+    argv = ["paper-task", *flags, "--out", str(tmp_path / "p"), "--results", str(tmp_path / "r")]
+    _refused(argv, capsys, f"PaperTask.il.{field} is set by each imitation part")
+    assert list(tmp_path.iterdir()) == []

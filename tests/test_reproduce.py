@@ -290,3 +290,22 @@ def test_budget_parts_write_the_frontier(quick_run):
     assert "claim 5 at budget-matched points (imitation)" in text
     assert "claim 5 at budget-matched points (imitation, RL team)" in text
     assert "| imitation, RL team | 16 | 0 | 2 |" in text
+
+
+@pytest.mark.parametrize("part", ["fixed", "il_budget_rl"])
+def test_a_part_that_reads_the_rl_teams_needs_the_rl_part(part, tmp_path):
+    out = tmp_path / "repro"
+    with pytest.raises(ValueError, match=rf"Reproduce.parts \(--parts\) holds {part}, which"):
+        Reproduce(parts=(part,), out=out)
+    assert Reproduce(parts=("rl", part), out=out).parts == ("rl", part)
+    (out / "rl").mkdir(parents=True)
+    (out / "rl" / "results.json").write_text("{}")
+    assert Reproduce(parts=(part,), out=out).parts == (part,)
+
+
+def test_an_expert_given_to_the_parts_is_refused(tmp_path):
+    from sparsecomm.configs import ILConfig
+
+    with pytest.raises(ValueError, match="Reproduce.il.expert_checkpoint is set by each"):
+        Reproduce(il=ILConfig(expert_checkpoint="/nonexistent"), out=tmp_path / "r")
+    assert list(tmp_path.iterdir()) == []

@@ -231,3 +231,59 @@ def test_the_command_splits_a_sweeps_runs_over_the_cores(tmp_path):
         done = subprocess.run(cmd, env={**env, **extra}, capture_output=True, text=True)
         assert done.returncode == 0, done.stderr[-3000:]
         assert json.loads((out / "results.json").read_text())["devices"] == devices
+
+
+def test_a_process_id_outside_the_cluster_is_refused_while_parsing(capsys):
+    from sparsecomm.cli import main
+    from sparsecomm.sharding import Distributed
+
+    with pytest.raises(ValueError, match=r"distributed.process_id must be in \[0, 1\]"):
+        Distributed(num_processes=2, process_id=5)
+    with pytest.raises(ValueError, match="distributed.num_processes must be an integer >= 1"):
+        Distributed(num_processes=0)
+    with pytest.raises(ValueError, match="distributed.process_id must be an integer >= 0"):
+        Distributed(process_id=-1)
+    assert Distributed(num_processes=2, process_id=1).process_id == 1
+    argv = ["--distributed.num-processes", "2", "--distributed.process-id", "5"]
+    for command in (["train"], ["reproduce", "--quick"]):
+        with pytest.raises(SystemExit) as e:
+            main([*command, *argv, "--distributed.enabled"])
+        err = " ".join(capsys.readouterr().err.split())
+        assert e.value.code == 2 and "Traceback" not in err, err
+        assert "distributed.process_id must be in [0, 1]" in err and "got 5" in err, err
+
+
+@pytest.mark.parametrize(
+    "variable, value",
+    [
+        ("JAX_NUM_CPU_DEVICES", "0"),
+        ("JAX_NUM_CPU_DEVICES", "abc"),
+        ("JAX_NUM_CPU_DEVICES", "-2"),
+        ("JAX_NUM_CPU_DEVICES", ""),
+        ("XLA_FLAGS", "--xla_force_host_platform_device_count=abc"),
+        ("XLA_FLAGS", "--xla_cpu_foo=1 --xla_force_host_platform_device_count=0"),
+        ("XLA_FLAGS", "--xla_force_host_platform_device_count"),
+    ],
+)
+def test_a_device_count_that_is_not_a_positive_integer_is_refused(variable, value, tmp_path):
+    """The ``sparsecomm`` command checks the variables before JAX reads them: exit 2, one line
+    naming the variable and the rule, for every command."""
+    from sparsecomm.cmdline import check_device_counts
+
+    with pytest.raises(ValueError, match=f"{variable}.*must be a positive integer"):
+        check_device_counts({variable: value})
+    env = {k: v for k, v in os.environ.items() if k not in ("JAX_NUM_CPU_DEVICES", "XLA_FLAGS")}
+    for command in ("train", "eval", "deploy"):
+        done = subprocess.run(
+            [sys.executable, "-m", "sparsecomm.cli", command, "--out", str(tmp_path / "o")],
+            env={**env, variable: value},
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert done.returncode == 2, done.stderr[-2000:]
+        assert done.stderr.startswith(f"sparsecomm: error: {variable}"), done.stderr[-2000:]
+        assert "positive integer" in done.stderr and "Traceback" not in done.stderr
+    assert list(tmp_path.iterdir()) == []
+    check_device_counts({"JAX_NUM_CPU_DEVICES": "2", "XLA_FLAGS": "--xla_cpu_foo=1"})
+    check_device_counts({"XLA_FLAGS": "--xla_force_host_platform_device_count=3"})

@@ -43,6 +43,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sparsecomm.cmdline import refuse_empty_paths
 from sparsecomm.deploy import wire
 from sparsecomm.deploy.faults import Deadlines, Faults, inject
 
@@ -469,7 +470,9 @@ def main(argv: list[str] | None = None) -> int:
     import tyro
 
     wire.die_with_parent()
+    argv = sys.argv[1:] if argv is None else argv
     try:
+        refuse_empty_paths(AgentArgs, argv)  # the parser would read '' as the current folder
         args = tyro.cli(AgentArgs, args=argv)
         agent = Agent(args)
         ready = time.monotonic() - _STARTED

@@ -9,7 +9,7 @@ import socket
 from pathlib import Path
 
 from sparsecomm.deploy.faults import Deadlines, Faults
-from sparsecomm.runfolder import at_least
+from sparsecomm.runfolder import at_least, check_output
 
 
 @dataclasses.dataclass
@@ -35,7 +35,8 @@ class Deploy:
     out: Path | None = None
     """Output folder: deploy.json, and per run the exported team, the world's episodes.jsonl
     and links.csv (bytes per link and step), the processes' logs. Default: ``<run>/deploy``
-    (``runs/pretrained/deploy`` for the shipped team)."""
+    (``runs/pretrained/deploy`` for the shipped team). A folder this user can write, or a path
+    where one can be created: checked before anything is loaded."""
     loss: float = 0.0
     """Probability that a datagram between agents is lost. ours: 0 (the fault test of
     tests/test_deploy.py: 0.2). A packet missing at the step's deadline is the null message
@@ -109,6 +110,7 @@ class Deploy:
             )
         if self.run is not None and not Path(self.run).is_dir():
             raise ValueError(f"Deploy.run must be a run folder, got {str(self.run)!r} (missing)")
+        check_output(self, folder=True)
         _check_host(self.host)
         try:
             self.faults()
@@ -145,10 +147,18 @@ HOST_RULE = (
 
 def _check_host(host) -> None:
     """Refuse a ``--host`` that the deploy's sockets (IPv4, ``wire.udp_socket``) cannot bind:
-    not an IPv4 address literal (``999.1.1.1``), a name that does not resolve, or an address of
-    another machine. Binds a UDP socket to port 0 there and closes it; nothing else."""
+    not an IPv4 address literal (``999.1.1.1``), an IPv6 address (``::1``), a name that does not
+    resolve to an IPv4 address, or an address of another machine. Binds a UDP socket to port 0
+    there and closes it; nothing else."""
     if not isinstance(host, str) or not host.strip():
         raise ValueError(f"Deploy.host must be {HOST_RULE}, got {host!r}")
+    if ":" in host:  # an IPv6 literal (or host:port): the sockets are IPv4 only
+        try:
+            ipaddress.IPv6Address(host.strip("[]"))
+            why = "an IPv6 address: the deploy's UDP sockets are IPv4 only, use 127.0.0.1"
+        except ValueError:
+            why = "not an IPv4 address or a name: give the address alone, without a port"
+        raise ValueError(f"Deploy.host must be {HOST_RULE}, got {host!r} ({why})")
     looks_numeric = all(part.isdigit() for part in host.split("."))
     try:
         address = str(ipaddress.IPv4Address(host)) if looks_numeric else None
@@ -160,7 +170,8 @@ def _check_host(host) -> None:
         address = address or socket.gethostbyname(host)
     except (OSError, UnicodeError):
         raise ValueError(
-            f"Deploy.host must be {HOST_RULE}, got {host!r} (the name does not resolve)"
+            f"Deploy.host must be {HOST_RULE}, got {host!r} (the name does not resolve to an "
+            "IPv4 address)"
         ) from None
     try:
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:

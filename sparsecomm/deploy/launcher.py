@@ -542,6 +542,9 @@ def _load_source(args):
 
     source = runfolder.PRETRAINED if args.run is None else Path(args.run)
     out = args.out or (Path("runs/pretrained") if args.run is None else source) / "deploy"
+    problem = runfolder.output_problem(out, folder=True)
+    if problem:  # a given --out was checked while parsing
+        raise RunError(f"Deploy.out (default: {out}) {problem}")
     try:
         runs = runfolder.runs_of(source)
     except (OSError, KeyError, TypeError, ValueError, CheckpointError) as e:

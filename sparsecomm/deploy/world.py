@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sparsecomm.cmdline import refuse_empty_paths
 from sparsecomm.deploy import wire
 from sparsecomm.deploy.faults import Deadlines
 
@@ -348,7 +349,9 @@ def main(argv: list[str] | None = None) -> int:
     import tyro
 
     wire.die_with_parent()
+    argv = sys.argv[1:] if argv is None else argv
     try:
+        refuse_empty_paths(WorldArgs, argv)  # the parser would read '' as the current folder
         args = tyro.cli(WorldArgs, args=argv)
         world = World(args)
     except ValueError as e:

@@ -51,14 +51,22 @@ from sparsecomm.experiment import evaluate_runs
 from sparsecomm.jsonfile import read_json, write_json
 from sparsecomm.pipelines import claims, frontier
 from sparsecomm.pipelines import rows as rowlib
-from sparsecomm.pipelines.plan import IL_LAMS, RL_LAMS, Part, Sweep, expert_index
+from sparsecomm.pipelines.plan import (
+    IL_LAMS,
+    RL_LAMS,
+    Part,
+    Sweep,
+    check_expert_unset,
+    check_parts,
+    expert_index,
+)
 from sparsecomm.pipelines.runner import SweepOptions, part_rows, run_parts
-from sparsecomm.runfolder import at_least, load_run, read_config
+from sparsecomm.runfolder import at_least, check_output, load_run, read_config
 
 PLAN = (
     Part("rl", "rl"),
     Part("il_oracle", "imitation"),
-    Part("il_rl", "imitation", "RL team"),
+    Part("il_rl", "imitation", "RL team", needs="rl"),
     Part("rl_lams", "rl"),
     Part("il_lams", "imitation"),
 )
@@ -72,6 +80,7 @@ sender would say and what its recipient holds), a silent link held by its recipi
 prices and budgets as the paper's. The ``silent`` preset's links (docs/wire.md) with the paper's
 frame check; chosen on tuning seeds 1000-1001 (docs/paper-task.md, links that fall silent, RL)."""
 _FAST_RL = PRESETS["paper_fast"]["train"]
+_IL = dataclasses.replace(PRESETS["paper"]["imitate"], channel=NEWS)
 GOALS, MAX_LENGTH_RATIO = (32.0, 16.0), 1.25
 """The paper task's targets: budget 32, then the stretch 16, with episodes at most 1.25x lambda
 0's."""
@@ -84,11 +93,13 @@ class PaperTask:
     """The paper's task with bit budgets, RL and imitation: trains, evaluates, summarises."""
 
     out: Path = Path("runs/paper")
-    """Folder of the parts' run folders (one sub-folder per part)."""
+    """Folder of the parts' run folders (one sub-folder per part; a folder this user can write,
+    or a path where one can be created: checked before any part runs)."""
     results: Path = Path("docs/results/paper")
-    """Folder of ``summary.json``, ``frontier.png`` and ``claims.json``."""
+    """Folder of ``summary.json``, ``frontier.png`` and ``claims.json`` (checked as ``out``)."""
     parts: tuple[str, ...] = PARTS
-    """Parts to run (any of ``PARTS``); the summary covers every part found in ``out``."""
+    """Parts to run (any of ``PARTS``); the summary covers every part found in ``out``.
+    ``il_rl`` needs ``rl``: with it, or with a finished ``rl`` part in ``out``."""
     seeds: int = 5
     """Seeds per group (seed s of every part uses ``key(config.seed + s)``). ours: 5, the least the
     targets ask for (docs/paper-task.md); the 95% CIs cover at most 94% at n = 5
@@ -110,12 +121,13 @@ class PaperTask:
     and 6000 updates (96,000 episodes per run). ours: the preset's learner tuned on seeds
     1000-1003, the update count and the bonus from the verdicts on seeds 0-19
     (docs/paper-task.md)."""
-    il: ILConfig = dataclasses.replace(PRESETS["paper"]["imitate"], channel=NEWS)
+    il: ILConfig = _IL
     """The imitation learner: the ``paper`` preset (the settings with which docs/budget.md
     confirmed the bounded relief on this task) with the ``rl`` part's links that fall silent but
-    speak on news (:data:`NEWS`); its expert is set by the part. ours: tuned on seeds 1000-1001
-    (docs/paper-task.md, imitation of the oracle with links that fall silent: budgets 32 and 16
-    met there, where the plain channel stayed near 45 bits on the verdict seeds)."""
+    speak on news (:data:`NEWS`); its expert is set by the part (``--il.expert*`` refused).
+    ours: tuned on seeds 1000-1001 (docs/paper-task.md, imitation of the oracle with links that
+    fall silent: budgets 32 and 16 met there, where the plain channel stayed near 45 bits on the
+    verdict seeds)."""
     eval_episodes: int = 500
     """Final-evaluation episodes per run."""
     greedy: bool = True
@@ -143,6 +155,9 @@ class PaperTask:
             raise ValueError("PaperTask.budgets must hold at least one budget, got ()")
         for config in (self.rl, self.il):  # refused now, not after the parts before it ran
             check_budget_fits(config, self.budgets, "budgets", owner="PaperTask")
+        check_expert_unset(self, _IL)
+        check_parts(self, PLAN)
+        check_output(self, "results", folder=True)
 
 
 def build_part(args: PaperTask, part: str) -> Sweep:

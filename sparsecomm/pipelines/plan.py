@@ -15,6 +15,7 @@ from pathlib import Path
 from sparsecomm.configs import ILConfig, RLConfig
 from sparsecomm.jsonfile import read_json
 from sparsecomm.metric_names import aliased_results
+from sparsecomm.runfolder import RESULTS, check_output, output_problem
 
 RL_LAMS = (0.01, 0.005, 0.001, 0.0)
 """Paper, section V: the RL penalty weights."""
@@ -34,6 +35,8 @@ class Part:
     """The learner of the part's rows (``"rl"`` or ``"imitation"``); None: no frontier rows."""
     series: str | None = None
     """The series of its rows (compared with the series' own lambda 0); None: the learner's."""
+    needs: str | None = None
+    """A part whose teams this one reads (run before it, or found finished in ``out``)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,7 +76,7 @@ def expert_index(run: Path) -> int:
     res = read_json(run / "results.json")
     if res is None:
         raise ValueError(
-            f"the il_budget_rl part needs the rl part's teams in {run}: run 'rl' first"
+            f"imitation of the RL team needs the rl part's teams in {run}: run 'rl' first"
         )
     runs = [
         (i, r)
@@ -84,3 +87,42 @@ def expert_index(run: Path) -> int:
         raise ValueError(f"the rl part in {run} has no lambda = 0 runs")
     best = min(runs, key=lambda p: (-p[1]["episode/success_rate"], p[1]["episode/episode_length"]))
     return best[0]
+
+
+def check_parts(args, plan: tuple[Part, ...]) -> None:
+    """Refuse, with a ``ValueError`` naming the field, what would stop a command's parts
+    (``args.parts`` of ``plan``) after others ran: ``args.out`` or a selected part's folder
+    under it that cannot be written as a folder, and a part that needs another part's teams
+    (:attr:`Part.needs`) that is neither selected nor found finished (its ``results.json``) in
+    ``args.out``."""
+    owner = type(args).__name__
+    check_output(args, folder=True)
+    for name in args.parts:
+        problem = output_problem(Path(args.out) / name, folder=True)
+        if problem:
+            raise ValueError(
+                f"{owner}.out {problem} (the {name} part's folder), got {str(args.out)!r}"
+            )
+    needs = {part.name: part.needs for part in plan}
+    for name in args.parts:
+        need = needs[name]
+        if need and need not in args.parts and not (Path(args.out) / need / RESULTS).exists():
+            raise ValueError(
+                f"{owner}.parts (--parts) holds {name}, which needs the {need} part's teams: add "
+                f"{need} to --parts, or keep a finished {need} part in {Path(args.out) / need} "
+                f"(no {RESULTS} there), got {tuple(args.parts)}"
+            )
+
+
+def check_expert_unset(args, default: ILConfig) -> None:
+    """Refuse an expert given in ``args.il`` (``--il.expert*``), naming the field: every
+    imitation part of a pipeline sets its own expert (the oracle, or an RL part's team), so one
+    given would be ignored. ``default``: the command's own ``il``."""
+    for name in ("expert", "expert_checkpoint", "expert_index"):
+        value = getattr(args.il, name)
+        if value != getattr(default, name):
+            raise ValueError(
+                f"{type(args).__name__}.il.{name} is set by each imitation part (the oracle, or "
+                f"the rl part's best lambda-0 team), so it must be left at "
+                f"{getattr(default, name)!r}, got {value!r}"
+            )

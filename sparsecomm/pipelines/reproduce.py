@@ -43,7 +43,16 @@ from sparsecomm.experiment import EVAL_SEED_OFFSET, evaluate_runs
 from sparsecomm.jsonfile import read_json, write_json
 from sparsecomm.metric_names import written_row
 from sparsecomm.pipelines import claims
-from sparsecomm.pipelines.plan import BUDGETS, IL_LAMS, RL_LAMS, Part, Sweep, expert_index
+from sparsecomm.pipelines.plan import (
+    BUDGETS,
+    IL_LAMS,
+    RL_LAMS,
+    Part,
+    Sweep,
+    check_expert_unset,
+    check_parts,
+    expert_index,
+)
 from sparsecomm.pipelines.report import write_report
 from sparsecomm.pipelines.runner import SweepOptions, run_parts
 from sparsecomm.provenance import git_commit, hardware, source_digest
@@ -56,12 +65,12 @@ PLAN = (
     Part("imitation", "imitation"),
     Part("no_comm"),
     Part("continuous"),
-    Part("fixed"),
+    Part("fixed", needs="rl"),
     Part("rcl"),
     Part("oracle"),
     Part("rl_budget", "rl"),
     Part("il_budget", "imitation"),
-    Part("il_budget_rl", "imitation", "RL team"),
+    Part("il_budget_rl", "imitation", "RL team", needs="rl"),
 )
 """Every part, in the order they run; those with a learner give the frontier's rows (each series
 judged against its own lambda 0)."""
@@ -86,7 +95,9 @@ class Reproduce:
     """Reproduce the paper: RL and imitation sweeps, baselines, figures, report.md."""
 
     out: Path = Path("runs/reproduce")
-    """Output folder: one sub-folder per part, figures, table1.md, report.md, summary.json."""
+    """Output folder: one sub-folder per part, figures, table1.md, report.md, summary.json (a
+    folder this user can write, or a path where one can be created: checked before any part
+    runs)."""
     quick: bool = False
     """Tiny budgets (see ``QUICK``) for fields left unset: every artefact in a few minutes on a
     laptop CPU. The numbers then say nothing about the paper."""
@@ -119,7 +130,8 @@ class Reproduce:
     rl: RLConfig = RLConfig()
     """The RL learner (sweep and baselines; each baseline changes only its channel)."""
     il: ILConfig = ILConfig()
-    """The imitation learner (its expert is the oracle)."""
+    """The imitation learner (its expert is set by each part: the oracle, or the ``rl`` part's
+    team; ``--il.expert*`` refused)."""
     chunk: int | None = None
     """Updates per compiled call (logging granularity). None: 10 (all updates in one call with
     --quick, one compilation)."""
@@ -164,6 +176,8 @@ class Reproduce:
             )
         if not (np.isfinite(self.rcl_bit_cost) and self.rcl_bit_cost >= 0):
             raise ValueError(f"Reproduce.rcl_bit_cost must be >= 0, got {self.rcl_bit_cost!r}")
+        check_expert_unset(self, ILConfig())
+        check_parts(self, PLAN)
 
     def resolved(self, name: str):
         """A field's value, with None replaced by the quick or full default."""
