@@ -8,6 +8,7 @@ import jax
 import numpy as np
 import pytest
 
+from sparsecomm import learners
 from sparsecomm.cli import main, parse
 from sparsecomm.configs import SMALL_TASK, ILConfig, RLConfig
 from sparsecomm.runfolder import (
@@ -135,7 +136,10 @@ def test_an_exported_team_is_written_and_read_back_exactly(tmp_path):
     folder = write_team(tmp_path / "again", shipped.config, [shipped.run], batched, 0, "again")
     assert (folder / ACTOR).read_bytes() == (PRETRAINED / ACTOR).read_bytes()
     meta, shipped_meta = (json.loads((f / TEAM).read_text()) for f in (folder, PRETRAINED))
-    assert meta["note"] == "again" and meta["kind"] == shipped_meta["kind"] == "train"
+    # the shipped team names its kind as teams did before the learner registry ("train"); the
+    # team written again names it by the registry's name
+    assert meta["note"] == "again" and shipped_meta["kind"] == "train"
+    assert meta["kind"] == learners.named(shipped_meta["kind"]).name == "rl"
     again = read_team(folder)
     assert again.config == shipped.config and again.run == shipped.run
     _assert_same(again.actor, shipped.actor)
