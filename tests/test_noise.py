@@ -348,10 +348,14 @@ def test_eval_command_can_evaluate_a_team_under_other_noise(tmp_path, fast_compi
     out = tmp_path / "eval.json"
     args = ["eval", "--run", str(PRETRAINED), "--episodes", "16", "--out", str(out)]
     main([*args, "--no-own-noise", "--noise.erasure", "1.0"])
-    lost = json.loads(out.read_text())["by_group"]["budget=16/0"]["packets_lost_per_step"]["mean"]
+    lost = json.loads(out.read_text())["by_group"]["budget=16/0"]
+    lost = lost["channel/packets_lost_per_step"]["mean"]
     assert lost > 1.5  # two links, nearly always speaking: every packet lost
     main(args)
-    assert "packets_lost_per_step" not in json.loads(out.read_text())["by_group"]["budget=16/0"]
+    assert (
+        "channel/packets_lost_per_step"
+        not in json.loads(out.read_text())["by_group"]["budget=16/0"]
+    )
 
 
 # -- error correction ------------------------------------------------------------------------

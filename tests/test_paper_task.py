@@ -50,7 +50,7 @@ def test_every_part_then_the_issues_rows_and_verdicts(tmp_path, fast_compile):
     assert greedy["greedy"] is True and len(greedy["runs"]) == 4
     (zero,) = [r for r in rows if r["part"] == "rl" and r["budget"] is None]
     assert zero["greedy"]["per_seed"]["success"] == [
-        r["success_rate"] for r in greedy["runs"] if r["budget"] is None
+        r["episode/success_rate"] for r in greedy["runs"] if r["budget"] is None
     ]
     assert all("greedy" in r for r in rows)
     assert {t["budget"] for t in verdicts["targets_greedy"]} <= {16.0, 32.0}
@@ -62,7 +62,9 @@ def test_every_part_then_the_issues_rows_and_verdicts(tmp_path, fast_compile):
     # Each row keeps its runs' per-seed figures.
     runs = json.loads((out / "rl_lams" / "results.json").read_text())["runs"]
     (top,) = [r for r in rows if r["part"] == "rl_lams" and r["lam"] == 0.01]
-    assert top["per_seed"]["success"] == [r["success_rate"] for r in runs if r["lam"] == 0.01]
+    assert top["per_seed"]["success"] == [
+        r["episode/success_rate"] for r in runs if r["lam"] == 0.01
+    ]
     # Parts whose run folders are gone (run in another session) keep their rows and verdicts.
     for part in ("il_rl", "rl_lams", "il_lams", "il_oracle"):
         shutil.rmtree(out / part)

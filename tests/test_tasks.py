@@ -258,11 +258,11 @@ def test_a_task_in_one_file_trains_evaluates_renders_exports_imitates_and_deploy
     assert (run / "team.gif").stat().st_size > 0 and (run / "curves.png").exists()
     # it learned to talk: guessing blind succeeds 1/9 per step (~0.5 in 6 steps), talking in 2
     (row,) = results["runs"]
-    assert row["success_rate"] >= 0.9 and row["episode_length"] <= 3.0, row
+    assert row["episode/success_rate"] >= 0.9 and row["episode/episode_length"] <= 3.0, row
 
     cli.main(["eval", "--run", str(run), "--episodes", "32", "--out", str(tmp_path / "e.json")])
     ev = json.loads((tmp_path / "e.json").read_text())["runs"][0]
-    assert ev["success_rate"] >= 0.9
+    assert ev["episode/success_rate"] >= 0.9
     cli.main(["render", "--run", str(run), "--out", str(tmp_path / "t.gif")])
     assert (tmp_path / "t.gif").stat().st_size > 0
     cli.main(["export", "--run", str(run), "--out", str(tmp_path / "team")])
