@@ -356,8 +356,19 @@ def test_elapsed_time_adds_up_over_resumes(tmp_path):
 
 
 def _tb_scalars(folder: Path) -> dict[str, list[int]]:
-    """The steps of every scalar as TensorBoard shows them: event files in order, a session
-    START at step S hiding the earlier events at steps >= S (``purge_step``)."""
+    """The steps of every scalar of every run as TensorBoard shows them, by ``run/tag`` (one
+    writer per run, in its own folder under ``folder``)."""
+    shown: dict[str, list[int]] = {}
+    for run in sorted({p.parent for p in folder.rglob("events.out.tfevents.*")}):
+        name = run.relative_to(folder).as_posix()
+        shown |= {f"{name}/{t}": v for t, v in _tb_run_scalars(run).items()}
+    return shown
+
+
+def _tb_run_scalars(folder: Path) -> dict[str, list[int]]:
+    """The steps of every scalar of one writer's folder as TensorBoard shows them: event files
+    in order, a session START at step S hiding the earlier events at steps >= S
+    (``purge_step``)."""
     from tensorboardX.proto import event_pb2
 
     shown: dict[str, list[int]] = {}

@@ -272,7 +272,7 @@ def test_a_task_in_one_file_trains_evaluates_renders_exports_imitates_and_deploy
     cli.main(
         ["imitate", "--task", "toy", "--config.num-updates", "3", "--out", str(imitate), *small]
     )
-    assert json.loads((imitate / "checkpoint" / "config.json").read_text())["kind"] == "imitate"
+    assert json.loads((imitate / "checkpoint" / "config.json").read_text())["kind"] == "imitation"
 
     episodes = 5
     out = tmp_path / "deploy"
