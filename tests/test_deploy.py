@@ -903,6 +903,12 @@ def test_an_agent_drops_what_is_not_sealed_or_not_expected(tmp_path):
         assert act.kind == wire.ACT and wire.parse_report(act.payload, 1).bad == len(dropped)
         assert agent._handle(AUTH.pack(wire.OBS, wire.WORLD, 0, 0, 0, obs)) is None  # replayed
         assert agent.counts["stale"] == 1
+        # while a step is in progress, a copy of its observation is a duplicate, not the world
+        # moving on (it would end the wait for the step's frames); a newer one is news
+        agent.acting = (0, 1)
+        assert agent._handle(AUTH.pack(wire.OBS, wire.WORLD, 0, 0, 1, obs)) is None
+        assert agent.counts["dup"] == 1
+        assert agent._handle(AUTH.pack(wire.OBS, wire.WORLD, 0, 0, 2, obs)).step == 2
         assert agent._handle(AUTH.pack(wire.BYE, wire.WORLD, 0, 0, 0)) == "bye"
     finally:
         world.close()

@@ -26,8 +26,9 @@ is dropped before its payload is read and counted (``bad``).
 
 An observation of step 0, or the first observation this process sees, starts from a zero GRU
 state: a restarted agent rejoins the episode where it is, with its recurrent state reset (and,
-with ``on_drop = last`` or ``on_silence = hold``, no last messages). A duplicate observation is
-answered with the same action; an older one is dropped (``stale``). The agent exits on the
+with ``on_drop = last`` or ``on_silence = hold``, no last messages). A copy of the observation
+being acted on is dropped (``dup``); one of the step just acted on is answered with the same
+action; an older one is dropped (``stale``). The agent exits on the
 world's ``bye`` (0; only a sealed ``bye`` from the world counts), after ``Deadlines.idle``
 without a word from the world (3), or on SIGINT/SIGTERM.
 """
@@ -180,6 +181,7 @@ class Agent:
         self.inbox: dict[tuple[int, int, int], list[bytes]] = {}
         self.episode = -1
         self.last_act: tuple[tuple[int, int], bytes] | None = None
+        self.acting: tuple[int, int] | None = None  # the observation being acted on
         self.counts = {"dup": 0, "stale": 0, "bad": 0, "no_map": 0}
         self._reset_episode(-1)
         self._warm_up()
@@ -289,6 +291,9 @@ class Agent:
             return "bye"
         if dg.kind == wire.OBS and dg.sender == wire.WORLD:
             here = (dg.episode, dg.step)
+            if here == self.acting:  # a copy of the observation in progress: not news
+                self.counts["dup"] += 1
+                return None
             if self.last_act is not None and here == self.last_act[0]:
                 self.out.send(self.last_act[1], self.world)  # the world asks again
                 return None
@@ -354,6 +359,7 @@ class Agent:
         if values is None:
             self.counts["bad"] += 1
             return None
+        self.acting = (b, t)  # from here a copy of this observation is a duplicate
         msgs, missing, newer = self._messages(b, t, heard, arrived)
         self._prune(b, t)
         out = self.step_fn(
@@ -374,7 +380,7 @@ class Agent:
         self.links = self.links._replace(prev=out.symbols, own=out.delivered)
         report = self._report(out, rejoined, frame_bits, missing, spoke, datagram, sent, sent_n)
         act = self.auth.pack(wire.ACT, self.i, wire.WORLD, b, t, wire.pack_report(report))
-        self.last_act = ((b, t), act)
+        self.last_act, self.acting = ((b, t), act), None
         self.out.send(act, self.world)
         return newer
 
