@@ -5,6 +5,7 @@ import dataclasses
 import json
 import os
 import signal
+import struct
 import subprocess
 import sys
 import time
@@ -88,6 +89,7 @@ def test_reports_and_hellos_have_a_fixed_layout_and_a_parser_that_never_raises()
         missing=1,
         dup=0,
         stale=2,
+        foreign=5,
         bad=2**32 - 1,
         no_map=0,
         payload=(17, 0),
@@ -97,7 +99,7 @@ def test_reports_and_hellos_have_a_fixed_layout_and_a_parser_that_never_raises()
         sent_n=(2, 0),
     )
     data = wire.pack_report(report)
-    assert len(data) == wire.report_bytes(2) == 31 + 2 * 12
+    assert len(data) == wire.report_bytes(2) == 35 + 2 * 12
     assert wire.parse_report(data, 2) == report
     assert wire.parse_report(data, 1) is None and wire.parse_report(data + b"\0", 2) is None
     assert wire.parse_report(data[:-1], 2) is None and wire.parse_report(None, 2) is None
@@ -109,7 +111,8 @@ def test_reports_and_hellos_have_a_fixed_layout_and_a_parser_that_never_raises()
         junk = rng.bytes(int(rng.choice([wire.report_bytes(2), int(rng.integers(0, 80))])))
         got = wire.parse_report(junk, 2)
         assert got is None or (len(got.spoke) == 2 and set(got.spoke) <= {0, 1})
-        assert wire.parse_hello(junk) in (None, int.from_bytes(junk, "big"))
+        assert wire.parse_hello(junk) in (None, junk)
+        assert wire.parse_hello(junk) is None or len(junk) == wire.NONCE_BYTES
     for bad in (b"null", b"[]", b'{"a": 1e999}'):  # the JSON payloads that crashed the world
         assert wire.parse_report(bad, 2) is None
 
@@ -308,18 +311,26 @@ def test_heard_map_round_trip_and_never_raises():
     assert wire.parse_map(bytes([0b100]), 2) is None  # a padding bit set: no map
     assert wire.parse_map(b"\x01\x00", 2) is None  # another length: no map
     obs = np.arange(8, dtype=np.float32)
-    values, heard = wire.parse_obs(wire.pack_obs(obs, [True, False]), 8, 2)
+    nonce = wire.new_nonce()
+    data = wire.pack_obs(nonce, obs, [True, False])
+    assert len(data) == wire.NONCE_BYTES + 4 * 8 + 1 and wire.obs_nonce(data) == nonce
+    got, values, heard = wire.parse_obs(data, 8, 2)
     np.testing.assert_array_equal(values, obs)
-    assert heard.tolist() == [True, False]
-    values, heard = wire.parse_obs(wire.pack_obs(obs), 8, 2)  # no map: wait for everyone
+    assert got == nonce and heard.tolist() == [True, False]
+    _, values, heard = wire.parse_obs(wire.pack_obs(nonce, obs), 8, 2)  # no map: wait for all
     assert heard is None and values.size == 8
+    assert wire.parse_obs(data[wire.NONCE_BYTES :], 8, 2) == (None, None, None)  # no nonce
+    with pytest.raises(ValueError, match="nonce must have 8 bytes"):
+        wire.pack_obs(b"pid1", obs)
     rng = np.random.default_rng(2)
     for _ in range(2000):
-        data = rng.bytes(int(rng.integers(0, 40)))
-        values, heard = wire.parse_obs(data, 8, int(rng.integers(0, 20)))
-        assert values is None or values.shape == (8,)
+        data = rng.bytes(int(rng.integers(0, 60)))
+        got, values, heard = wire.parse_obs(data, 8, int(rng.integers(0, 20)))
+        assert values is None or (values.shape == (8,) and got == data[: wire.NONCE_BYTES])
+        assert wire.obs_nonce(data) in (None, data[: wire.NONCE_BYTES])
         wire.parse_map(data, int(rng.integers(0, 40)))
-    assert wire.parse_obs(None, 8, 2) == (None, None) and wire.parse_map(None, 2) is None
+    assert wire.parse_obs(None, 8, 2) == (None, None, None) and wire.parse_map(None, 2) is None
+    assert wire.obs_nonce(None) is None
 
 
 def test_the_world_maps_what_each_sender_reported():
@@ -550,7 +561,8 @@ def test_silent_links_put_no_datagram_on_the_network(tmp_path, loss):
             for i, agent in enumerate(agents):
                 heard = None if t == steps else maps[i]  # the last step: no map
                 obs = rng.normal(size=agent.obs_dim).astype(np.float32)
-                data = AUTH.pack(wire.OBS, wire.WORLD, i, 0, t, wire.pack_obs(obs, heard))
+                payload = wire.pack_obs(agent.nonce, obs, heard)
+                data = AUTH.pack(wire.OBS, wire.WORLD, i, 0, t, payload)
                 assert agent._act(AUTH.parse(data)) is None
                 world.settimeout(5.0)
                 dg = AUTH.parse(world.recvfrom(wire.MAX_DATAGRAM)[0])
@@ -856,6 +868,93 @@ def test_a_flood_of_forgeries_changes_no_action(tmp_path):
     assert row["garbage_dropped"] > 0 and row["world_dropped"] > 0
 
 
+def _capture_refused() -> str:
+    from sparsecomm.deploy.replay import can_capture
+
+    return can_capture()
+
+
+def test_a_replaying_peer_changes_no_episode(tmp_path):
+    """A peer without the secret captures every datagram the team's processes send each other
+    (hellos, observations, actions, frames, the world's steps) and sends copies of each at once,
+    duplicated, reordered, late, to the wrong process, and old ones at random, under reordering:
+    every episode is still eval's, nothing is reflected (no copied hello answered), no process
+    dies, and each kind of copy is counted where it is dropped."""
+    why = _capture_refused()
+    if why:
+        pytest.skip(f"a packet capture socket is needed (root or CAP_NET_RAW): {why}")
+    team = _team(tmp_path / "team", num_agents=2, max_steps=12)
+    args = Deploy(run=team, episodes=8, out=tmp_path / "deploy", reorder=0.5, replay=True)
+    (row,) = deploy(args)["runs"]
+    sim = row["simulation"]
+    assert sim["identical_episodes"] == 8, sim["different_episodes"]
+    assert row["restarts"] == 0 and row["missing_actions_per_step"] == 0
+    captured, sent = row["replays"]["captured"], row["replays"]["sent"]
+    assert all(captured[kind] > 0 for kind in ("hello", "obs", "act", "msg", "step"))
+    assert all(sent[mode] > 0 for mode in ("once", "duplicated", "reordered", "wrong", "old"))
+    assert row["hellos_answered"] == 0 and row["hellos_ignored"] > 0  # never reflected
+    assert row["duplicates_dropped"] > 0 and row["world_duplicates_dropped"] > 0
+    assert row["stale_dropped"] > 0 and row["late_actions"] == 0
+    assert row["garbage_dropped"] > 0 and row["world_dropped"] > 0  # sent to the wrong process
+
+
+def test_the_replaying_peer_reads_udp_packets_and_never_raises():
+    from sparsecomm.deploy.replay import udp_of
+
+    payload = b"SC" + bytes(30)
+    udp = struct.pack("!HHHH", 5000, 6000, 8 + len(payload), 0) + payload
+    head = bytes([0x45, 0]) + struct.pack("!H", 20 + len(udp)) + bytes(4) + bytes([64, 17])
+    head += bytes(2) + bytes([127, 0, 0, 1]) + bytes([127, 0, 0, 2])
+    got = udp_of(head + udp)
+    assert got == (("127.0.0.1", 5000), ("127.0.0.2", 6000), payload)
+    fragment = head[:6] + b"\x20\x00" + head[8:]  # more fragments follow: not whole
+    assert udp_of(fragment + udp) is None
+    assert udp_of(head[:9] + b"\x06" + head[10:] + udp) is None  # TCP
+    rng = np.random.default_rng(5)
+    for _ in range(3000):
+        junk = bytearray(rng.bytes(int(rng.integers(0, 80))))
+        if junk and rng.random() < 0.5:
+            junk[0] = 0x45
+        got = udp_of(bytes(junk))
+        assert got is None or len(got) == 3
+
+
+def test_deploy_refuses_a_replay_it_cannot_capture(monkeypatch):
+    from sparsecomm.deploy import replay
+
+    monkeypatch.setattr(replay, "can_capture", lambda: "Operation not permitted")
+    with pytest.raises(ValueError, match=r"Deploy\.replay needs a packet capture socket"):
+        Deploy(replay=True)
+
+
+@pytest.mark.slow
+def test_a_replaying_peer_under_kills_leaves_every_restart_rejoining(tmp_path):
+    """Copies of every datagram, one agent killed per episode and 20% loss: each killed agent's
+    successor acts only on observations its own hello asked for (those of its predecessor are
+    dropped, ``foreign``), so it rejoins every time and sends no action for a step the world
+    already played."""
+    why = _capture_refused()
+    if why:
+        pytest.skip(f"a packet capture socket is needed (root or CAP_NET_RAW): {why}")
+    team = _team(tmp_path / "team", num_agents=2, max_steps=12, radius=0.05)
+    args = Deploy(
+        run=team,
+        episodes=3,
+        out=tmp_path / "deploy",
+        loss=0.2,
+        reorder=0.5,
+        kills_per_episode=1,
+        kill_window=3,
+        action_deadline=1.0,
+        replay=True,
+    )
+    (row,) = deploy(args)["runs"]
+    assert row["episodes"] == 3 and row["kills"] == 3
+    assert row["restarts"] == row["kills"] == row["rejoins"] == row["hellos_answered"]
+    assert row["late_actions"] == 0 and row["hellos_ignored"] > 0
+    assert row["replays"]["sent"]["late"] > 0
+
+
 def test_an_agent_drops_what_is_not_sealed_or_not_expected(tmp_path):
     """One agent in this process: a bye, an observation or a frame sealed under another secret
     is dropped (counted ``bad``); so is a sealed one from the wrong sender, for another
@@ -879,7 +978,7 @@ def test_an_agent_drops_what_is_not_sealed_or_not_expected(tmp_path):
     agent = Agent(args)
     try:
         stranger = wire.Auth(bytes(range(100, 132)))
-        obs = wire.pack_obs(np.zeros(agent.obs_dim, np.float32), [False])
+        obs = wire.pack_obs(agent.nonce, np.zeros(agent.obs_dim, np.float32), [False])
         dropped = [
             stranger.pack(wire.BYE, wire.WORLD, 0, 0, 0),
             stranger.pack(wire.OBS, wire.WORLD, 0, 0, 0, obs),
@@ -903,12 +1002,23 @@ def test_an_agent_drops_what_is_not_sealed_or_not_expected(tmp_path):
         assert act.kind == wire.ACT and wire.parse_report(act.payload, 1).bad == len(dropped)
         assert agent._handle(AUTH.pack(wire.OBS, wire.WORLD, 0, 0, 0, obs)) is None  # replayed
         assert agent.counts["stale"] == 1
+        # a copy of the observation just acted on is a duplicate: nothing is sent back (a
+        # replay is not reflected)
+        assert agent._handle(first) is None and agent.counts["dup"] == 1
+        world.settimeout(0.2)
+        with pytest.raises(TimeoutError):
+            world.recvfrom(wire.MAX_DATAGRAM)
         # while a step is in progress, a copy of its observation is a duplicate, not the world
         # moving on (it would end the wait for the step's frames); a newer one is news
-        agent.acting = (0, 1)
-        assert agent._handle(AUTH.pack(wire.OBS, wire.WORLD, 0, 0, 1, obs)) is None
-        assert agent.counts["dup"] == 1
-        assert agent._handle(AUTH.pack(wire.OBS, wire.WORLD, 0, 0, 2, obs)).step == 2
+        agent.acting = (0, 2)
+        assert agent._handle(AUTH.pack(wire.OBS, wire.WORLD, 0, 0, 2, obs)) is None
+        assert agent.counts["dup"] == 2
+        # an observation for another process of this agent (a predecessor's nonce): foreign
+        other = wire.pack_obs(wire.new_nonce(), np.zeros(agent.obs_dim, np.float32), [False])
+        assert agent._handle(AUTH.pack(wire.OBS, wire.WORLD, 0, 0, 3, other)) is None
+        assert agent._handle(AUTH.pack(wire.OBS, wire.WORLD, 0, 0, 3, b"")) is None
+        assert agent.counts["foreign"] == 2
+        assert agent._handle(AUTH.pack(wire.OBS, wire.WORLD, 0, 0, 3, obs)).step == 3
         assert agent._handle(AUTH.pack(wire.BYE, wire.WORLD, 0, 0, 0)) == "bye"
     finally:
         world.close()

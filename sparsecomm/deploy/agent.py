@@ -24,20 +24,23 @@ whose sender, kind, episode or step is not one this agent expects (an observatio
 not from the world, a frame not from one of its senders, an episode or step outside the batch),
 is dropped before its payload is read and counted (``bad``).
 
-An observation of step 0, or the first observation this process sees, starts from a zero GRU
+Each process draws a nonce (``wire.new_nonce``) and sends it in its hello; the world echoes
+an agent's latest nonce first in every observation, and the agent drops every observation that
+does not carry its own (``foreign``): a restarted agent acts only on the observation its own
+hello asked for and those after it, never on its predecessor's or on replays of them. An
+observation of step 0, or the first observation this process acts on, starts from a zero GRU
 state: a restarted agent rejoins the episode where it is, with its recurrent state reset (and,
 with ``on_drop = last`` or ``on_silence = hold``, no last messages). A copy of the observation
-being acted on is dropped (``dup``); one of the step just acted on is answered with the same
-action; an older one is dropped (``stale``). The agent exits on the
-world's ``bye`` (0; only a sealed ``bye`` from the world counts), after ``Deadlines.idle``
-without a word from the world (3), or on SIGINT/SIGTERM.
+being acted on, or of the one just acted on, is dropped (``dup``; nothing is sent back, so a
+replay is not reflected); an older one is dropped (``stale``). The agent exits on the world's
+``bye`` (0; only a sealed ``bye`` from the world counts), after ``Deadlines.idle`` without a
+word from the world (3), or on SIGINT/SIGTERM.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import heapq
-import os
 import sys
 import time
 from pathlib import Path
@@ -180,9 +183,10 @@ class Agent:
         self.inbox_size = core.inbox_size(self.cfg, k)
         self.inbox: dict[tuple[int, int, int], list[bytes]] = {}
         self.episode = -1
-        self.last_act: tuple[tuple[int, int], bytes] | None = None
+        self.last_act: tuple[int, int] | None = None  # the observation last acted on
         self.acting: tuple[int, int] | None = None  # the observation being acted on
-        self.counts = {"dup": 0, "stale": 0, "bad": 0, "no_map": 0}
+        self.nonce = wire.new_nonce()  # this process's: the world echoes it in observations
+        self.counts = {"dup": 0, "stale": 0, "foreign": 0, "bad": 0, "no_map": 0}
         self._reset_episode(-1)
         self._warm_up()
 
@@ -222,8 +226,7 @@ class Agent:
 
     def run(self) -> int:
         d = self.args.deadlines
-        pid = (os.getpid() & 0xFFFFFFFF).to_bytes(wire.HELLO_BYTES, "big")
-        hello = self.auth.pack(wire.HELLO, self.i, wire.WORLD, 0, 0, pid)
+        hello = self.auth.pack(wire.HELLO, self.i, wire.WORLD, 0, 0, self.nonce)
         start = time.monotonic()
         next_hello = 0.0
         obs = None
@@ -290,14 +293,14 @@ class Agent:
         if dg.kind == wire.BYE and dg.sender == wire.WORLD and not dg.payload:
             return "bye"
         if dg.kind == wire.OBS and dg.sender == wire.WORLD:
+            if wire.obs_nonce(dg.payload) != self.nonce:  # for another process of this agent
+                self.counts["foreign"] += 1
+                return None
             here = (dg.episode, dg.step)
-            if here == self.acting:  # a copy of the observation in progress: not news
-                self.counts["dup"] += 1
+            if here == self.acting or (self.last_act is not None and here == self.last_act):
+                self.counts["dup"] += 1  # a copy of the observation in progress or just done
                 return None
-            if self.last_act is not None and here == self.last_act[0]:
-                self.out.send(self.last_act[1], self.world)  # the world asks again
-                return None
-            if self.last_act is not None and here < self.last_act[0]:
+            if self.last_act is not None and here < self.last_act:
                 self.counts["stale"] += 1  # an observation already acted on: a replay
                 return None
             return dg
@@ -355,7 +358,7 @@ class Agent:
             self._reset_episode(b)
         elif t <= self.t:
             return None
-        values, heard = wire.parse_obs(obs.payload, self.obs_dim, self.k - 1)
+        _, values, heard = wire.parse_obs(obs.payload, self.obs_dim, self.k - 1)
         if values is None:
             self.counts["bad"] += 1
             return None
@@ -380,7 +383,7 @@ class Agent:
         self.links = self.links._replace(prev=out.symbols, own=out.delivered)
         report = self._report(out, rejoined, frame_bits, missing, spoke, datagram, sent, sent_n)
         act = self.auth.pack(wire.ACT, self.i, wire.WORLD, b, t, wire.pack_report(report))
-        self.last_act, self.acting = ((b, t), act), None
+        self.last_act, self.acting = (b, t), None
         self.out.send(act, self.world)
         return newer
 

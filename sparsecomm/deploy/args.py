@@ -84,6 +84,12 @@ class Deploy:
     the launcher) this many forged datagrams per second in all, of every kind
     (``sparsecomm.deploy.hostile``), while the team plays: a drill of the MAC and the parsers
     (docs/deploy.md, "Who can stop the team"). ``inf``: as fast as it can. ours: 0 (no peer)."""
+    replay: bool = False
+    """A replaying peer without the team's secret captures every datagram the team's processes
+    send each other (a packet socket: Linux, root or ``CAP_NET_RAW``; checked before anything
+    is loaded) and sends copies of each at once, duplicated, reordered, late, to the wrong
+    process, and old ones at random, while the team plays (``sparsecomm.deploy.replay``): a
+    drill of the protocol's replay rules (docs/deploy.md, "Who can stop the team"). ours: off."""
     reference: bool = True
     """Also play the same episodes in simulation (the run's ``sparsecomm eval`` draws, with
     ``loss`` as the simulator's packet erasure) and report them side by side, with the count of
@@ -110,6 +116,15 @@ class Deploy:
             )
         if self.run is not None and not Path(self.run).is_dir():
             raise ValueError(f"Deploy.run must be a run folder, got {str(self.run)!r} (missing)")
+        if self.replay:
+            from sparsecomm.deploy.replay import can_capture
+
+            why = can_capture()
+            if why:
+                raise ValueError(
+                    f"Deploy.replay needs a packet capture socket (Linux, root or CAP_NET_RAW) "
+                    f"on this host: {why}"
+                )
         check_output(self, folder=True)
         _check_host(self.host)
         try:

@@ -53,7 +53,7 @@ def forgeries(
     k = num_agents
     sizes = {
         wire.MSG: lambda: int(rng.integers(1, 40)),
-        wire.OBS: lambda: 4 * obs_dim + wire.map_bytes(k - 1),
+        wire.OBS: lambda: wire.NONCE_BYTES + 4 * obs_dim + wire.map_bytes(k - 1),
         wire.ACT: lambda: wire.report_bytes(k - 1),
         wire.HELLO: lambda: wire.HELLO_BYTES,
     }

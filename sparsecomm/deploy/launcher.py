@@ -138,12 +138,12 @@ def play(
     """Play one deployment of the exported ``team``; ``{"episodes": [...], "kills", "restarts",
     "wall_s", "peer"}``. Raises ``RunError`` when the world fails or stalls.
 
-    ``peer``: a hostile peer (``Deploy.forgeries_per_second``), called with ``{name: ((host,
-    port), recipient id)}`` for the world, each agent (``agent_<i>``) and the launcher's monitor
-    once the processes are started; it returns an object whose ``go()`` the launcher calls when
-    the world reports its first step (the drill is of the play; a flood during start-up only
-    delays it) and whose ``stop()`` returns what it did (``"peer"`` of the result), e.g. a
-    ``hostile.Flood``; ``None``: no peer."""
+    ``peer``: a hostile peer (``Deploy.forgeries_per_second``, ``Deploy.replay``), called with
+    ``{name: ((host, port), recipient id)}`` for the world, each agent (``agent_<i>``) and the
+    launcher's monitor before the processes start; it returns an object whose ``go()`` the
+    launcher calls when the world reports its first step (the drill is of the play; a flood
+    during start-up only delays it) and whose ``stop()`` returns what it did (``"peer"`` of the
+    result), e.g. a ``hostile.Flood`` or a ``replay.Replay``; ``None``: no peer."""
     faults = Faults() if faults is None else faults
     deadlines = Deadlines() if deadlines is None else deadlines
     k = num_agents
@@ -165,10 +165,10 @@ def play(
     # installs no handler of its own.
     previous = {sig: signal.signal(sig, _interrupt) for sig in (signal.SIGTERM, signal.SIGINT)}
     try:
+        # a peer starts first: a replaying one captures the team's start-up hellos too
+        watch.hostile = None if peer is None else peer(_targets(net))
         world = procs.start("world", world_cmd)
         watch.start_team(k)
-        targets = _targets(net)
-        watch.hostile = None if peer is None else peer(targets)
         watch.until_world_exits(world)
         watch.wait_for_agents()
     finally:
@@ -608,7 +608,7 @@ def _run_row(r: int, run, seed: int, played: dict, simulated) -> dict:
         "wall_clock_s": played["wall_s"],
     }
     if played["peer"] is not None:
-        row["forgeries_sent"] = played["peer"]
+        row.update(played["peer"])  # forgeries_sent, replays
     if simulated is not None:
         row["simulation"] = compare(played["episodes"], simulated.result())
     return row
@@ -639,22 +639,50 @@ def _by_group(results: list[dict], runs, index) -> dict:
     return by_group
 
 
+class _Peers:
+    """Several hostile peers as one (``play``'s ``peer``): ``go`` and ``stop`` each;
+    ``stop()`` returns ``{name: what it did}``."""
+
+    def __init__(self, peers: dict):
+        self.peers = peers
+
+    def go(self) -> None:
+        for peer in self.peers.values():
+            peer.go()
+
+    def stop(self) -> dict:
+        return {name: peer.stop() for name, peer in self.peers.items()}
+
+
 def _peer(args, env):
-    """The hostile peer of ``Deploy.forgeries_per_second`` (``None``: none)."""
-    if not args.forgeries_per_second > 0:
+    """The hostile peers of ``Deploy.forgeries_per_second`` (``forgeries_sent``) and
+    ``Deploy.replay`` (``replays``), as one; ``None``: none."""
+    if not (args.forgeries_per_second > 0 or args.replay):
         return None
-    from sparsecomm.deploy.hostile import Flood
 
     def start(targets):
-        return Flood(
-            targets,
-            num_agents=env.num_agents,
-            episodes=args.episodes,
-            steps=env.max_steps,
-            obs_dim=env.obs_dim,
-            rate=args.forgeries_per_second,
-            seed=args.fault_seed,
-        )
+        peers = {}
+        try:
+            if args.replay:  # first: it captures the team's start-up hellos too
+                from sparsecomm.deploy.replay import Replay
+
+                peers["replays"] = Replay(targets, seed=args.fault_seed)
+            if args.forgeries_per_second > 0:
+                from sparsecomm.deploy.hostile import Flood
+
+                peers["forgeries_sent"] = Flood(
+                    targets,
+                    num_agents=env.num_agents,
+                    episodes=args.episodes,
+                    steps=env.max_steps,
+                    obs_dim=env.obs_dim,
+                    rate=args.forgeries_per_second,
+                    seed=args.fault_seed,
+                )
+        except BaseException:
+            _Peers(peers).stop()
+            raise
+        return _Peers(peers)
 
     return start
 
@@ -674,6 +702,14 @@ def _print_row(row: dict) -> None:
         line += (
             f"\n    forged datagrams sent {sum(row['forgeries_sent'].values())}, dropped by the "
             f"agents {row['garbage_dropped']} and the world {row['world_dropped']}"
+        )
+    if "replays" in row:
+        line += (
+            f"\n    replayed datagrams sent {sum(row['replays']['sent'].values())}; dropped as "
+            f"duplicates {row['duplicates_dropped']} + {row['world_duplicates_dropped']} "
+            f"(world), stale {row['stale_dropped']}, for another process "
+            f"{row['foreign_dropped']}, misaddressed {row['garbage_dropped']} + "
+            f"{row['world_dropped']} (world); hellos ignored {row['hellos_ignored']}"
         )
     if "simulation" in row:
         sim = row["simulation"]

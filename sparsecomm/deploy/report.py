@@ -47,7 +47,13 @@ def summarize(episodes: list[dict]) -> tuple[dict, dict]:
       ``speaking_links_per_step``; ``missing_messages_per_step``: frames a heard map promised
       that did not arrive by the deadline (losses; without a map, senders not heard);
     * ``map_bits_per_step``: the heard maps the world sent (world traffic, not in the network
-      bits).
+      bits);
+    * totals of the datagrams dropped, by why (``world.SUMS``): ``duplicates_dropped``,
+      ``stale_dropped``, ``foreign_dropped`` (observations for another process of the agent),
+      ``garbage_dropped`` by the agents; ``world_dropped`` and ``world_duplicates_dropped`` by
+      the world; ``late_actions`` (counted after their step was played); ``hellos_answered``
+      (restarted agents told where the world is) and ``hellos_ignored`` (a nonce already
+      seen: never answered).
 
     A record lacking a field (an older world's) counts 0 for it."""
     col = {n: np.array([float(e.get(n, 0)) for e in episodes], np.float64) for n in _COUNTED}
@@ -78,8 +84,13 @@ def summarize(episodes: list[dict]) -> tuple[dict, dict]:
     means.update(
         duplicates_dropped=int(col["dup"].sum()),
         stale_dropped=int(col["stale"].sum()),
+        foreign_dropped=int(col["foreign"].sum()),
         garbage_dropped=int(col["bad"].sum()),
         world_dropped=int(col["world_bad"].sum()),
+        world_duplicates_dropped=int(col["world_dup"].sum()),
+        late_actions=int(col["late_actions"].sum()),
+        hellos_answered=int(col["hellos"].sum()),
+        hellos_ignored=int(col["hellos_ignored"].sum()),
         rejoins=int(col["rejoined"].sum()),
         steps_without_map=int(col["no_map"].sum()),
     )
@@ -104,7 +115,15 @@ def summarize(episodes: list[dict]) -> tuple[dict, dict]:
     return means, cis
 
 
-_COUNTED = ("success", "length", "group_reward", "missing_actions", *SUMS)
+_COUNTED = (
+    "success",
+    "length",
+    "group_reward",
+    "missing_actions",
+    "hellos",
+    "hellos_ignored",
+    *SUMS,
+)
 """The fields of an episode record that :func:`summarize` reads."""
 
 

@@ -31,7 +31,9 @@ kind     from -> to      payload
 ``msg``  agent -> agent  the sender's **frame** of the step, exactly as
                          ``sparsecomm.channel.encode_sender`` writes it; one copy per recipient
                          whose link speaks, none for a silent link
-``obs``  world -> agent  ``obs_dim`` float32 (big-endian), then the **heard map**
+``obs``  world -> agent  the **nonce** of the agent's hello this observation answers to
+                         (:data:`NONCE_BYTES`), ``obs_dim`` float32 (big-endian), then the
+                         **heard map**
                          (:func:`pack_obs`): ``ceil((K-1)/8)`` bytes whose bit ``s`` (byte
                          ``s // 8``, bit ``s % 8``, least significant first) is set when the
                          agent's ``s``-th sender (``channel.others``) spoke to it at the previous
@@ -39,14 +41,25 @@ kind     from -> to      payload
 ``act``  agent -> world  its action and what it sent and heard: :class:`Report`
                          (:func:`pack_report`, :data:`REPORT_HEAD` then :data:`REPORT_LINK` per
                          link)
-``hello`` agent -> world "I am up" (at start and after a restart): the process id, 4 bytes
+``hello`` agent -> world "I am up" (at start and after a restart): a **nonce**, 8 random
+                         bytes drawn once per process (``secrets``)
 ``bye``  world -> agent  shut down: empty
 ``step`` world -> launcher progress: empty
 ``done`` world -> launcher every episode played: empty
 ======== =============== ========================================================================
 
 The episode and step of the header are what discards a stale frame: no sequence number is
-needed. Counting: the header and MAC are :data:`HEADER_BYTES` per datagram, and the IPv4 and UDP
+needed. **Replays.** A copy of a real datagram passes the MAC, so each receiver also asks
+whether it is news. The nonce binds observations to one agent process: the world answers each
+hello's nonce once (a copy of a hello, or a hello of a process since replaced, is never answered,
+so nothing is reflected), keeps the latest nonce of each agent and writes it first in every
+observation; an agent acts only on observations carrying its own nonce, so a restarted agent
+never acts on its predecessor's, and among its own only on a step newer than the last it acted
+on (a copy of the one in progress or already answered is a duplicate, an older one stale). A
+frame already received is a duplicate, one of a step already acted on stale; an action of a
+step the world already counted is a duplicate. Each is counted where it is dropped.
+
+Counting: the header and MAC are :data:`HEADER_BYTES` per datagram, and the IPv4 and UDP
 headers add :data:`UDP_IP_BYTES` more on the network (counted, not measured: loopback carries
 them too).
 """
@@ -67,8 +80,10 @@ from typing import NamedTuple
 import numpy as np
 
 MAGIC = b"SC"
-VERSION = 2
-"""2: the MAC (version 1 had a CRC-16 in its place and JSON reports; it is refused)."""
+VERSION = 3
+"""3: the hello's nonce and its echo in every observation (version 2 sent the process id and
+answered every hello; version 1 had a CRC-16 where the MAC is and JSON reports; both are
+refused)."""
 MSG, OBS, ACT, HELLO, BYE, STEP, DONE = 1, 2, 3, 4, 5, 6, 7
 KINDS = {MSG: "msg", OBS: "obs", ACT: "act", HELLO: "hello", BYE: "bye", STEP: "step", DONE: "done"}
 """The kinds of datagram (module docstring)."""
@@ -205,7 +220,12 @@ class Report(NamedTuple):
     """What an agent sent and heard at one step, in its action datagram (kind ``act``). Per
     link ``r`` (recipient slot, ``channel.others``): ``payload[r]`` payload bits,
     ``spoke[r]`` 1 when it spoke, ``datagram[r]`` the bytes of the datagram due (0: none),
-    ``sent[r]`` / ``sent_n[r]`` the bytes and datagrams the fault layer sent for it."""
+    ``sent[r]`` / ``sent_n[r]`` the bytes and datagrams the fault layer sent for it. The
+    counts of datagrams dropped since the agent's last report: ``dup`` (copies of a frame or
+    of an observation already in hand), ``stale`` (for a step already acted on), ``foreign``
+    (observations carrying another process's nonce: a predecessor's, or replays of them),
+    ``bad`` (failing the MAC, not addressed to this agent, or malformed); ``no_map``: steps
+    waited without a heard map."""
 
     action: int
     rejoined: bool
@@ -214,6 +234,7 @@ class Report(NamedTuple):
     missing: int
     dup: int
     stale: int
+    foreign: int
     bad: int
     no_map: int
     payload: tuple[int, ...]
@@ -223,9 +244,9 @@ class Report(NamedTuple):
     sent_n: tuple[int, ...]
 
 
-REPORT_HEAD = struct.Struct("!HBIIIIIII")
-"""action (u16), rejoined (u8: 0 or 1), sim_wire, frame (bits), missing, dup, stale, bad,
-no_map (u32 each)."""
+REPORT_HEAD = struct.Struct("!HBIIIIIIII")
+"""action (u16), rejoined (u8: 0 or 1), sim_wire, frame (bits), missing, dup, stale, foreign,
+bad, no_map (u32 each)."""
 REPORT_LINK = struct.Struct("!IBHIB")
 """Per link: payload bits (u32), spoke (u8: 0 or 1), datagram bytes (u16), sent bytes (u32),
 sent datagrams (u8)."""
@@ -263,15 +284,23 @@ def parse_report(payload, num_links: int) -> Report | None:
     return Report(head[0], bool(head[1]), *head[2:], *columns)
 
 
-HELLO_BYTES = 4
-"""A hello's payload: the agent's process id (u32)."""
+NONCE_BYTES = 8
+"""Bytes of an agent process's nonce (64 random bits: two processes of one deployment share one
+with probability ~2^-64 per pair)."""
+HELLO_BYTES = NONCE_BYTES
+"""A hello's payload: the agent process's nonce."""
 
 
-def parse_hello(payload) -> int | None:
-    """The process id in a hello's payload, or ``None`` (never raises)."""
+def new_nonce() -> bytes:
+    """A fresh nonce for one agent process (``secrets``)."""
+    return secrets.token_bytes(NONCE_BYTES)
+
+
+def parse_hello(payload) -> bytes | None:
+    """The nonce in a hello's payload, or ``None`` (never raises)."""
     if not isinstance(payload, (bytes, bytearray, memoryview)) or len(payload) != HELLO_BYTES:
         return None
-    return int.from_bytes(bytes(payload), "big")
+    return bytes(payload)
 
 
 def map_bytes(num_links: int) -> int:
@@ -300,29 +329,40 @@ def parse_map(data: bytes, num_links: int) -> np.ndarray | None:
     return bits[:num_links]
 
 
-def pack_obs(obs, heard=None) -> bytes:
-    """An observation's payload: the float32 values (big-endian), then the heard map of
-    ``heard`` (one boolean per sender slot; ``None``: no map, the receivers wait for every
-    sender until the deadline)."""
-    body = np.asarray(obs, ">f4").reshape(-1).tobytes()
+def pack_obs(nonce: bytes, obs, heard=None) -> bytes:
+    """An observation's payload: the agent's ``nonce`` (:data:`NONCE_BYTES`), the float32
+    values (big-endian), then the heard map of ``heard`` (one boolean per sender slot;
+    ``None``: no map, the receivers wait for every sender until the deadline)."""
+    nonce = bytes(nonce)
+    if len(nonce) != NONCE_BYTES:
+        raise ValueError(f"nonce must have {NONCE_BYTES} bytes, got {len(nonce)}")
+    body = nonce + np.asarray(obs, ">f4").reshape(-1).tobytes()
     return body if heard is None else body + pack_map(heard)
 
 
+def obs_nonce(payload) -> bytes | None:
+    """The nonce an observation's payload starts with, or ``None`` (never raises)."""
+    if not isinstance(payload, (bytes, bytearray, memoryview)) or len(payload) < NONCE_BYTES:
+        return None
+    return bytes(payload[:NONCE_BYTES])
+
+
 def parse_obs(payload: bytes, obs_dim: int, num_links: int):
-    """``(values (obs_dim,) float32, heard (num_links,) bool | None)`` of an observation's
-    payload; ``values`` is ``None`` when the payload holds no observation of ``obs_dim`` floats,
-    ``heard`` ``None`` when it holds no valid map (fall back to waiting for every sender).
-    Never raises."""
+    """``(nonce, values (obs_dim,) float32, heard (num_links,) bool | None)`` of an
+    observation's payload; ``nonce`` and ``values`` are ``None`` when the payload holds no
+    nonce and observation of ``obs_dim`` floats, ``heard`` ``None`` when it holds no valid map
+    (fall back to waiting for every sender). Never raises."""
     if not isinstance(payload, (bytes, bytearray, memoryview)):
-        return None, None
-    payload, n = bytes(payload), 4 * int(obs_dim)
+        return None, None, None
+    payload, n = bytes(payload), NONCE_BYTES + 4 * int(obs_dim)
     if len(payload) < n:
-        return None, None
-    values = np.frombuffer(payload[:n], ">f4").astype(np.float32)
+        return None, None, None
+    nonce = payload[:NONCE_BYTES]
+    values = np.frombuffer(payload[NONCE_BYTES:n], ">f4").astype(np.float32)
     rest = payload[n:]
     if len(rest) != map_bytes(num_links):  # no map, or one of another length: no map
-        return (values, None) if not rest else (None, None)
-    return values, parse_map(rest, num_links)
+        return (nonce, values, None) if not rest else (None, None, None)
+    return nonce, values, parse_map(rest, num_links)
 
 
 def parse_address(text: str, name: str = "address") -> tuple[str, int]:

@@ -3,8 +3,15 @@
 The simulator stands in for the world: it waits for every agent's hello (``Deadlines.startup``),
 then plays the batch's episodes one after another with the draws of ``sparsecomm eval``
 (``core.episode_draws``). At each step it sends every agent its observation, waits for every
-agent's action (``Deadlines.action`` at most; an agent that says hello meanwhile, restarted, is
-sent the observation again), takes action 0 (no force) for an agent still silent, and steps.
+agent's action (``Deadlines.action`` at most; an agent that says hello meanwhile with a nonce
+never seen, restarted, is sent the observation again, once), takes action 0 (no force) for an
+agent still silent, and steps.
+
+Hellos and nonces. A hello carries its process's nonce (``wire.parse_hello``). The world keeps
+every nonce it has seen; a hello with a new one makes it the agent's current nonce (the process
+that sent it replaced the one before), a hello with one already seen (the agent repeating itself
+before an answer came, or a copy) is not answered and is counted (``hellos_ignored``). Every
+observation carries its agent's current nonce, so only the latest process acts on it.
 Each agent's action datagram also says what the agent sent and heard that step; the world adds
 them up per link and per step (``links.csv``), per sender and step (``frames.csv``) and per
 episode (``episodes.jsonl``), and at the end tells every agent ``bye``. With ``--monitor`` it
@@ -76,17 +83,23 @@ SUMS = (
     "missing",
     "dup",
     "stale",
+    "foreign",
     "bad",
     "no_map",
     "rejoined",
     "map_bytes",
     "world_bad",
+    "world_dup",
+    "late_actions",
 )
 """The counts of an episode record (``episodes.jsonl``), summed over its steps: the links'
 (``LINK_FIELDS``) and frames' counts, ``datagrams`` (MSG datagrams due, before faults),
 ``missing`` (frames a map promised that did not arrive: losses), the datagrams the agents
-dropped (``dup``, ``stale``, ``bad``: garbage, forgeries and datagrams not expected),
-``world_bad`` (those the world dropped), ``no_map`` (steps an agent waited without a
+dropped (``dup``, ``stale``, ``foreign``: observations for another process of the agent,
+``bad``: garbage, forgeries and datagrams not expected), those the world dropped
+(``world_bad``: failing the MAC, malformed, or of another episode or a step not yet played;
+``world_dup``: actions of a step already counted, copies and replays), ``late_actions``
+(actions counted after their step was played), ``no_map`` (steps an agent waited without a
 map), ``rejoined`` (restarted agents) and ``map_bytes`` (the heard maps the world sent)."""
 
 
@@ -173,7 +186,8 @@ class World:
         self.step(self.env_keys[0, 0], state, jax.numpy.zeros(k, jax.numpy.int32))
         self.sock = wire.udp_socket(wire.parse_address(args.listen))
         args.out.mkdir(parents=True, exist_ok=True)
-        self.hellos = 0
+        self.nonces: dict[int, bytes] = {}  # each agent's current process's nonce
+        self.seen: set[bytes] = set()  # every nonce ever answered
         self.dropped = 0  # datagrams dropped since the last episode record
 
     def _send(self, data: bytes, address) -> None:
@@ -212,16 +226,26 @@ class World:
     def _greet(self) -> int:
         """Wait for every agent's hello; 0, or 2 when one never came."""
         until = time.monotonic() + self.args.deadlines.startup
-        ready = set()
-        while len(ready) < self.k:
+        while len(self.nonces) < self.k:
             dg = self._recv(until)
             if dg is None:
-                missing = sorted(set(range(self.k)) - ready)
+                missing = sorted(set(range(self.k)) - set(self.nonces))
                 print(f"world: agents {missing} never said hello", file=sys.stderr)
                 return 2
             if dg and dg.kind == wire.HELLO:
-                ready.add(dg.sender)
+                self._hello(dg)
+        self.dropped = 0  # repeated hellos while the others start are not the first episode's
         return 0
+
+    def _hello(self, dg: wire.Datagram) -> bool:
+        """Note a hello; True when its nonce is new (the agent's process is new: answer it
+        once), False for a nonce already seen (a repeat or a copy: never answered)."""
+        nonce = wire.parse_hello(dg.payload)
+        if nonce in self.seen:
+            return False
+        self.seen.add(nonce)
+        self.nonces[dg.sender] = nonce
+        return True
 
     def run(self) -> int:
         if self._greet():
@@ -259,6 +283,8 @@ class World:
             "group_reward": 0.0,
             "missing_actions": 0,
             "hellos": 0,
+            "hellos_ignored": 0,
+            "rejoins_at": [],
         }
         sums = dict.fromkeys(SUMS, 0)
         per_link, counted = {}, set()
@@ -268,10 +294,7 @@ class World:
                 break
             obs_np = np.asarray(obs, ">f4")
             maps = heard_maps(spoke, k)
-            packets = [
-                self.auth.pack(wire.OBS, wire.WORLD, i, b, t, wire.pack_obs(obs_np[i], maps[i]))
-                for i in range(k)
-            ]
+            packets = [self._observation(i, b, t, obs_np[i], maps[i]) for i in range(k)]
             sums["map_bytes"] += k * wire.map_bytes(k - 1)
             spoke = {}
             for i in range(k):
@@ -288,22 +311,31 @@ class World:
                     break
                 if not dg:
                     continue
-                if dg.kind == wire.HELLO:  # a restarted agent: tell it where we are
-                    rec["hellos"] += 1
-                    self._send(packets[dg.sender], self.agents[dg.sender])
+                if dg.kind == wire.HELLO:
+                    if self._hello(dg):  # a restarted agent: tell it where we are, once
+                        rec["hellos"] += 1
+                        rec["rejoins_at"].append([dg.sender, t])
+                        i = dg.sender
+                        packets[i] = self._observation(i, b, t, obs_np[i], maps[i])
+                        self._send(packets[dg.sender], self.agents[dg.sender])
+                    else:
+                        rec["hellos_ignored"] += 1
                     continue
                 if dg.episode != b or dg.step > t:  # another episode's, or a step not yet played
                     self.dropped += 1
                     continue
+                if (dg.sender, dg.step) in counted:  # a copy of an action already counted
+                    sums["world_dup"] += 1
+                    continue
                 report, late = dg.payload, dg.step < t
-                if not late and dg.sender not in answered:
+                if late:
+                    sums["late_actions"] += 1
+                else:
                     answered.add(dg.sender)
                     actions[dg.sender] = report.action % self.env.num_actions
-                if not late:
                     spoke[dg.sender] = report.spoke
-                if (dg.sender, dg.step) not in counted:
-                    counted.add((dg.sender, dg.step))
-                    self._count(report, b, dg.step, dg.sender, sums, per_link, tables)
+                counted.add((dg.sender, dg.step))
+                self._count(report, b, dg.step, dg.sender, sums, per_link, tables)
             rec["missing_actions"] += k - len(answered)
             obs, state, rewards, _, info = self.step(
                 self.env_keys[t, b], state, jnp.asarray(actions)
@@ -315,6 +347,12 @@ class World:
         rec.update(sums)
         rec["links"] = per_link
         return rec
+
+    def _observation(self, i: int, b: int, t: int, obs, heard) -> bytes:
+        """Agent ``i``'s observation datagram of step ``t`` of episode ``b``, for its current
+        process (its nonce first)."""
+        payload = wire.pack_obs(self.nonces[i], obs, heard)
+        return self.auth.pack(wire.OBS, wire.WORLD, i, b, t, payload)
 
     def _count(self, report: wire.Report, b, t, sender, sums, per_link, tables) -> None:
         """Add one agent's report of step ``t`` (what it sent and heard) to the episode."""
@@ -341,7 +379,7 @@ class World:
         for name, value in frame.items():
             sums[name] += value
         sums["datagrams"] += copies
-        for name in ("missing", "dup", "stale", "bad", "no_map", "rejoined"):
+        for name in ("missing", "dup", "stale", "foreign", "bad", "no_map", "rejoined"):
             sums[name] += int(getattr(report, name))
 
 
