@@ -381,7 +381,7 @@ def test_the_work_log_check_flags_sessions_and_issues_and_passes_the_rest():
         "proc = subprocess.Popen(cmd, start_new_session=True)",
         "a TensorBoard session START at step S",
         "the decoder issues no warning",
-        "tissue 3, reissue 2",
+        f"tissue {3}, reissue {2}",
         "issues of 2 kinds",
     ]:
         assert not _work_log(fine), fine
