@@ -26,8 +26,8 @@ Their ``make_train(config)`` is called with their config file's values, except `
 own compiled program (their ``main`` vmaps over ``NUM_SEEDS`` keys; vmapped over 2 or 5 seeds
 the program stalled on the 2-core VM, every thread idle). Each seed's returns go to
 ``OUT.seedS.json`` as it ends, with the device and jax that ran it, and a later call with the
-same ``--out`` and ``--steps`` reads them instead of running the seed again, so a run longer
-than a session continues where it stopped (with every seed read back, only their config file
+same ``--out`` and ``--steps`` reads them instead of running the seed again, so an interrupted
+run continues where it stopped (with every seed read back, only their config file
 and ``omegaconf`` are needed: their script is not imported); ``--seed S --seeds 1`` runs one
 seed, so several processes can run seeds side by side. The return is their
 ``returned_episode_returns`` (``MPELogWrapper`` multiplies each agent's return by the number of

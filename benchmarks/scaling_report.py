@@ -216,7 +216,7 @@ def each_report(
         ).T
         ax[0].errorbar(ks, mean, yerr=err, fmt=fmt_, capsize=3, label=label)
     ax[0].set(xlabel="agents K", ylabel="success (all parked), eval", ylim=(-0.03, 1.03))
-    ax[0].set(xlim=(0, 32), xticks=(3, 10, 20, 30))  # the Ks of the issue, whichever were run
+    ax[0].set(xlim=(0, 32), xticks=(3, 10, 20, 30))  # the Ks of docs/scaling.md, whichever were run
     ax[0].legend(fontsize=7)
     for f, r in zip(folders, new, strict=True):
         c = read_csv(f / "metrics.csv")

@@ -65,7 +65,7 @@ def test_every_part_then_the_issues_rows_and_verdicts(tmp_path, fast_compile):
     assert top["per_seed"]["success"] == [
         r["episode/success_rate"] for r in runs if r["lam"] == 0.01
     ]
-    # Parts whose run folders are gone (run in another session) keep their rows and verdicts.
+    # Parts whose run folders are gone (run on another machine) keep their rows and verdicts.
     for part in ("il_rl", "rl_lams", "il_lams", "il_oracle"):
         shutil.rmtree(out / part)
     assert len(summarise(PaperTask(out=out, results=results))) == len(rows)

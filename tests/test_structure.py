@@ -1,12 +1,21 @@
 """The package's layering, read from its source: no import cycle, nothing imports the command
-line, and ``channel/`` and ``envs/`` stand alone at the bottom."""
+line, and ``channel/`` and ``envs/`` stand alone at the bottom. And the repository's files, read
+from git: no file names a work session or an issue number, and every result file under
+``docs/results/`` is named by a page, a script, a test or the code."""
 
 import ast
+import fnmatch
+import posixpath
+import re
+import subprocess
 from pathlib import Path
+
+import pytest
 
 import sparsecomm
 
 ROOT = Path(sparsecomm.__file__).parent
+REPO = ROOT.parent
 
 
 def _module_name(path: Path) -> str:
@@ -305,3 +314,181 @@ def test_only_the_command_line_imports_the_pipelines():
     )
     assert found == []
     assert "sparsecomm.pipelines.reproduce" in _graph()["sparsecomm.cli"]
+
+
+def _tracked() -> list[str]:
+    """The repository's tracked files that exist, as paths from its root; skips outside a git
+    checkout (an installed package has no docs to check)."""
+    try:
+        listed = subprocess.run(
+            ["git", "ls-files", "-z"], cwd=REPO, capture_output=True, check=True
+        ).stdout
+    except (OSError, subprocess.CalledProcessError):
+        pytest.skip("not a git checkout")
+    return [p for p in listed.decode().split("\0") if p and (REPO / p).is_file()]
+
+
+def _text(path: str) -> str | None:
+    """The text of the tracked file ``path``, or None for a binary one (a NUL byte, not UTF-8)."""
+    data = (REPO / path).read_bytes()
+    if b"\0" in data:
+        return None
+    try:
+        return data.decode("utf-8")
+    except UnicodeDecodeError:
+        return None
+
+
+WORK_LOG = re.compile(r"(?<![a-z])(?:session|issue)s?[\s_-]*#?\d", re.IGNORECASE)
+"""A work session or an issue named by its number: either word, singular or plural, then
+spaces (a line break too), ``_`` or ``-``, an optional ``#`` and a digit. ``_`` and ``-`` make
+it catch file names; no letter may come before the word. The pattern's own text does not match
+it (a ``|`` or ``)`` follows each word)."""
+
+BEING_REWORDED = {"docs/deploy.md": [f"(issue {33}: the MAC"]}
+"""Lines allowed for now, by their exact text, in files that are being reworded elsewhere; any
+other match in those files still fails. Delete an entry once its line is gone."""
+
+
+def _work_log(text: str, allowed: list[str] | tuple[str, ...] = ()) -> list[tuple[int, str]]:
+    """``(line number, line)`` for each line of ``text`` where a match of ``WORK_LOG`` starts,
+    except lines holding one of ``allowed``."""
+    lines = text.splitlines()
+    found = []
+    for match in WORK_LOG.finditer(text):
+        number = text.count("\n", 0, match.start()) + 1
+        line = lines[number - 1].strip()
+        if not any(a in line for a in allowed) and (number, line) not in found:
+            found.append((number, line))
+    return found
+
+
+def test_the_work_log_check_flags_sessions_and_issues_and_passes_the_rest():
+    # numbers interpolated, so that this file's own text names no session or issue
+    for story in [
+        f"measured in session {28} with 4000 updates",
+        f"(docs/paper-task.md, sessions {22} and 24)",
+        f"open work (issue {7})",
+        f"Issue {14}'s target: budget 16",
+        f"see issue #{5}",
+        f"docs/results/paper/rl_b32_session{32}/summary.json",
+        f"the figures of session-{9}",
+        f"in session\n  {24}'s run",
+    ]:
+        assert _work_log(story), story
+    assert _work_log(f"a\nb in session\n{24}") == [(2, "b in session")]
+    for fine in [
+        "proc = subprocess.Popen(cmd, start_new_session=True)",
+        "a TensorBoard session START at step S",
+        "the decoder issues no warning",
+        f"tissue {3}, reissue {2}",
+        "issues of 2 kinds",
+    ]:
+        assert not _work_log(fine), fine
+    assert _work_log(f"x (issue {33}: y)", [f"(issue {33}:"]) == []
+
+
+def test_no_tracked_file_names_a_work_session_or_an_issue():
+    """The repository speaks of the library, not of how it was made: no tracked file's path or
+    text names a work session or an issue by its number (state the rule, the figure, the
+    command, the seeds, the hardware, a date or a commit instead)."""
+    found = []
+    for path in _tracked():
+        if WORK_LOG.search(path):
+            found.append(f"{path}: the file's path")
+        text = _text(path)
+        if text is not None:
+            allowed = BEING_REWORDED.get(path, [])
+            found += [f"{path}:{n}: {line}" for n, line in _work_log(text, allowed)]
+    assert not found, "work sessions or issue numbers:\n" + "\n".join(found)
+
+
+RESULTS = "docs/results"
+PATH_TOKEN = re.compile(r"[\w.*/-]+")
+NAME_GLOB = re.compile(r"\w[\w.-]*\*[\w.*-]*")
+
+
+def _results_named_in(source: str, text: str, results: set[str]) -> set[str]:
+    """The files of ``results`` (paths under ``docs/results/``) that ``text``, the file
+    ``source``, names: by their path from the repository's root or from ``source``'s folder
+    (a report's ``x.png`` beside it), by
+    a glob of such paths (``results/noise/*.png``), or by their file name or a glob of names
+    (``comm_*``) where ``text`` also names a folder above them, or a file in such a folder
+    (`` `docs/results/wire/a.json`, `b.json` ``)."""
+    folders = {posixpath.dirname(r) for r in results}
+    for folder in list(folders):
+        while folder.startswith(RESULTS + "/"):
+            folders.add(folder)
+            folder = posixpath.dirname(folder)
+    found, named_folders, names = set(), set(), set()
+    for token in set(PATH_TOKEN.findall(text)):
+        token = token.rstrip(".")
+        if "/" not in token:
+            names.add(token)
+        for base in ("", posixpath.dirname(source)):
+            path = posixpath.normpath(posixpath.join(base, token))
+            if "*" in path and path.startswith(RESULTS + "/"):
+                found |= {r for r in results if fnmatch.fnmatchcase(r, path)}
+            elif path in results:
+                found.add(path)
+                named_folders.add(posixpath.dirname(path))
+            elif path in folders:
+                named_folders.add(path)
+    globs = [n for n in names if NAME_GLOB.fullmatch(n)]
+    for r in results:
+        name = posixpath.basename(r)
+        if any(r.startswith(folder + "/") for folder in named_folders) and (
+            name in names or any(fnmatch.fnmatchcase(name, g) for g in globs)
+        ):
+            found.add(r)
+    return found
+
+
+def test_the_results_reader_sees_paths_globs_and_names_beside_their_folder():
+    results = {
+        "docs/results/a/x.json",
+        "docs/results/a/x.png",
+        "docs/results/a/b/y.json",
+        "docs/results/a/comm_curves.png",
+        "docs/results/c/z.json",
+        "docs/results/c/w.json",
+    }
+    page = "`results/a/x.json`, `y.json` and `comm_*`; figures: `docs/results/a/*.png`; `w.json`"
+    assert _results_named_in("docs/page.md", page, results) == {
+        "docs/results/a/x.json",
+        "docs/results/a/x.png",
+        "docs/results/a/b/y.json",
+        "docs/results/a/comm_curves.png",
+    }
+    # A folder alone names none of its files; a name with its folder does.
+    assert _results_named_in("s.py", 'Path("docs/results/c")', results) == set()
+    assert _results_named_in("s.py", '"docs/results/c" / "z.json"', results) == {
+        "docs/results/c/z.json"
+    }
+    # A report inside docs/results names its figures relative to itself.
+    assert _results_named_in("docs/results/a/report.md", "![](x.png) ![](b/y.json)", results) == {
+        "docs/results/a/x.png",
+        "docs/results/a/b/y.json",
+    }
+
+
+def test_every_result_file_is_named_outside_docs_results():
+    """Every file under ``docs/results/`` is named by a tracked file outside it (a page, a
+    script, a test, the code) or by a page under it that is itself named (a report's figures):
+    a result no page names is either linked where its run is described or deleted (git keeps
+    it)."""
+    tracked = _tracked()
+    results = {p for p in tracked if p.startswith(RESULTS + "/")}
+    queue = [p for p in tracked if not p.startswith(RESULTS + "/")]
+    named = set()
+    while queue:
+        source = queue.pop()
+        text = _text(source)
+        if text is None:
+            continue
+        for path in _results_named_in(source, text, results) - named:
+            named.add(path)
+            if path.endswith(".md"):
+                queue.append(path)
+    unnamed = sorted(results - named)
+    assert not unnamed, "result files no page, script, test or code names:\n" + "\n".join(unnamed)

@@ -13,10 +13,10 @@ PACKAGE = Path(sparsecomm.__file__).resolve().parent
 MAKING = re.compile(
     "|".join(
         [
-            # a work session ("session 27", "sessions 22 and 24", "in another session"); a POSIX
+            # a work session (the word with its number, or "in another session"); a POSIX
             # process session is fine, and ``start_new_session`` has no word boundary before it
             r"(?<!posix )(?<!process )\bsessions?\b",
-            r"\bissues?\s+#?\d",  # "issue 17", "issues 31, 34", "issue #5"
+            r"\bissues?\s+#?\d",  # the word "issue" or "issues" and a number, "#" or not
             r"\bissue's\b",
             r"\bthe issue\b",
             r"\bcontroller v\d",
@@ -52,13 +52,14 @@ def test_package_does_not_speak_of_its_making():
 
 def test_the_check_flags_the_story_and_passes_the_rest():
     for story in [
-        "chosen in session 27 (issue 32)",
-        "(docs/paper-task.md, sessions 22 and 24)",
+        # numbers interpolated, so that this file's own text names no session or issue
+        f"chosen in session {27} (issue {32})",
+        f"(docs/paper-task.md, sessions {22} and 24)",
         "and earlier sessions of a resumed sweep included",
         "a part run in another session, whose run folder is gone",
-        "(issue 17, docs/channel.md)",
-        "Issue 14's target: budget 16",
-        "first written (issues 31, 34)",
+        f"(issue {17}, docs/channel.md)",
+        f"Issue {14}'s target: budget 16",
+        f"first written (issues {31}, 34)",
         "ours: 0 (the issue's fault test: 0.01)",
         "(docs/budget.md, controller v6)",
         "    v5).",  # the second line of "(docs/budget.md, controller\n    v5)"
