@@ -345,20 +345,16 @@ spaces (a line break too), ``_`` or ``-``, an optional ``#`` and a digit. ``_`` 
 it catch file names; no letter may come before the word. The pattern's own text does not match
 it (a ``|`` or ``)`` follows each word)."""
 
-BEING_REWORDED = {"docs/deploy.md": [f"(issue {33}: the MAC"]}
-"""Lines allowed for now, by their exact text, in files that are being reworded elsewhere; any
-other match in those files still fails. Delete an entry once its line is gone."""
 
-
-def _work_log(text: str, allowed: list[str] | tuple[str, ...] = ()) -> list[tuple[int, str]]:
-    """``(line number, line)`` for each line of ``text`` where a match of ``WORK_LOG`` starts,
-    except lines holding one of ``allowed``."""
+def _work_log(text: str) -> list[tuple[int, str]]:
+    """``(line number, line)`` for each line of ``text`` where a match of ``WORK_LOG``
+    starts."""
     lines = text.splitlines()
     found = []
     for match in WORK_LOG.finditer(text):
         number = text.count("\n", 0, match.start()) + 1
         line = lines[number - 1].strip()
-        if not any(a in line for a in allowed) and (number, line) not in found:
+        if (number, line) not in found:
             found.append((number, line))
     return found
 
@@ -385,7 +381,6 @@ def test_the_work_log_check_flags_sessions_and_issues_and_passes_the_rest():
         "issues of 2 kinds",
     ]:
         assert not _work_log(fine), fine
-    assert _work_log(f"x (issue {33}: y)", [f"(issue {33}:"]) == []
 
 
 def test_no_tracked_file_names_a_work_session_or_an_issue():
@@ -398,8 +393,7 @@ def test_no_tracked_file_names_a_work_session_or_an_issue():
             found.append(f"{path}: the file's path")
         text = _text(path)
         if text is not None:
-            allowed = BEING_REWORDED.get(path, [])
-            found += [f"{path}:{n}: {line}" for n, line in _work_log(text, allowed)]
+            found += [f"{path}:{n}: {line}" for n, line in _work_log(text)]
     assert not found, "work sessions or issue numbers:\n" + "\n".join(found)
 
 
