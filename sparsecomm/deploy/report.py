@@ -48,12 +48,7 @@ def summarize(episodes: list[dict]) -> tuple[dict, dict]:
       that did not arrive by the deadline (losses; without a map, senders not heard);
     * ``map_bits_per_step``: the heard maps the world sent (world traffic, not in the network
       bits);
-    * totals of the datagrams dropped, by why (``world.SUMS``): ``duplicates_dropped``,
-      ``stale_dropped``, ``foreign_dropped`` (observations for another process of the agent),
-      ``garbage_dropped`` by the agents; ``world_dropped`` and ``world_duplicates_dropped`` by
-      the world; ``late_actions`` (counted after their step was played); ``hellos_answered``
-      (restarted agents told where the world is) and ``hellos_ignored`` (a nonce already
-      seen: never answered).
+    * the totals of :data:`TOTALS`.
 
     A record lacking a field (an older world's) counts 0 for it."""
     col = {n: np.array([float(e.get(n, 0)) for e in episodes], np.float64) for n in _COUNTED}
@@ -81,19 +76,7 @@ def summarize(episodes: list[dict]) -> tuple[dict, dict]:
         "group_reward": float(col["group_reward"].mean()),
     }
     means.update({name: float(v.sum() / steps.sum()) for name, v in per_step.items()})
-    means.update(
-        duplicates_dropped=int(col["dup"].sum()),
-        stale_dropped=int(col["stale"].sum()),
-        foreign_dropped=int(col["foreign"].sum()),
-        garbage_dropped=int(col["bad"].sum()),
-        world_dropped=int(col["world_bad"].sum()),
-        world_duplicates_dropped=int(col["world_dup"].sum()),
-        late_actions=int(col["late_actions"].sum()),
-        hellos_answered=int(col["hellos"].sum()),
-        hellos_ignored=int(col["hellos_ignored"].sum()),
-        rejoins=int(col["rejoined"].sum()),
-        steps_without_map=int(col["no_map"].sum()),
-    )
+    means.update({name: int(col[field].sum()) for name, field in TOTALS.items()})
     cis = {}
     for name in CI_METRICS:
         if name in per_step:
@@ -115,6 +98,28 @@ def summarize(episodes: list[dict]) -> tuple[dict, dict]:
     return means, cis
 
 
+TOTALS = {
+    "duplicates_dropped": "dup",
+    "stale_dropped": "stale",
+    "foreign_dropped": "foreign",
+    "garbage_dropped": "bad",
+    "world_dropped": "world_bad",
+    "world_duplicates_dropped": "world_dup",
+    "late_actions": "late_actions",
+    "hellos_answered": "hellos",
+    "hellos_ignored": "hellos_ignored",
+    "rejoins": "rejoined",
+    "steps_without_map": "no_map",
+}
+"""The totals over a deployment's episodes, by name in the report and field of the episode
+records (``world.SUMS``): the datagrams the agents dropped as copies of what they hold
+(``duplicates_dropped``), for a step already acted on (``stale_dropped``), for another process
+of the agent (``foreign_dropped``: a predecessor's nonce) or as forged, garbage or not
+addressed to them (``garbage_dropped``); those the world dropped (``world_dropped``) and the
+copies of actions it had counted (``world_duplicates_dropped``); actions counted after their
+step was played (``late_actions``); hellos answered (``hellos_answered``: restarted agents
+told where the world is) and never answered (``hellos_ignored``: a nonce already seen);
+restarted agents that rejoined; steps waited without a heard map."""
 _COUNTED = (
     "success",
     "length",
