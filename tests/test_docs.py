@@ -1,10 +1,14 @@
 """The docs: the reference pages (``docs/reference/``) are what ``scripts/gen_reference.py``
-writes from the code today, and every field of a command or a config has a docstring for them
-to show."""
+writes from the code today, every field of a command or a config has a docstring for them to
+show, and the pages build to HTML with MkDocs (``mkdocs.yml``) under ``--strict``: a link to a
+page, a file or a heading that does not exist, a link out of ``docs/`` and a page left out of
+the nav all fail the build."""
 
 import ast
 import dataclasses
 import importlib.util
+import shutil
+import subprocess
 import sys
 from pathlib import Path
 
@@ -132,3 +136,34 @@ def test_docstrings_become_markdown(gen):
     )
     assert gen.value(Path("runs/x")) == "runs/x"
     assert gen.value((0.5,)) == "(0.5,)"
+
+
+def _mkdocs_build(config: Path, site: Path) -> subprocess.CompletedProcess:
+    pytest.importorskip("mkdocs", reason="mkdocs is not installed (the test extra installs it)")
+    return subprocess.run(
+        [sys.executable, "-m", "mkdocs", "build", "--strict", "-f", str(config), "-d", str(site)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+
+
+def test_the_docs_build_to_html_with_no_broken_link(tmp_path):
+    built = _mkdocs_build(REPO / "mkdocs.yml", tmp_path / "site")
+    assert built.returncode == 0, built.stdout + built.stderr
+    assert (tmp_path / "site" / "reference" / "config.html").is_file()
+
+
+def test_a_broken_link_fails_the_build(tmp_path):
+    # A copy of the docs with a missing page, a missing heading, a link out of docs/ (to a file
+    # that exists, but not in the site) and a page left out of the nav: each is named.
+    shutil.copy(REPO / "mkdocs.yml", tmp_path)
+    shutil.copytree(REPO / "docs", tmp_path / "docs")
+    with open(tmp_path / "docs" / "index.md", "a") as page:
+        page.write("\n[a](no-such-page.md) [b](reference/config.md#no-such-heading)\n")
+        page.write("[c](../sparsecomm/cli.py)\n")
+    (tmp_path / "docs" / "orphan.md").write_text("# Not in the nav\n")
+    built = _mkdocs_build(tmp_path / "mkdocs.yml", tmp_path / "site")
+    assert built.returncode != 0
+    for named in ("no-such-page.md", "#no-such-heading", "../sparsecomm/cli.py", "orphan.md"):
+        assert named in built.stdout + built.stderr, named
