@@ -414,6 +414,25 @@ def load_params(folder: str | Path, index: int = 0) -> dict:
     return jax.tree.map(lambda x: np.asarray(x[index]), to_host(params))
 
 
+def _team_actor(folder: Path, template, raw: dict):
+    """An exported team's actor parameters ``raw`` in the structure of ``template`` (the actor
+    its config builds); another structure or shape (an ``actor.msgpack`` of another team) is a
+    ``CheckpointError`` naming the file, the first parameter that differs and both shapes."""
+    where = f"team file {folder / ACTOR} does not hold the actor its {TEAM} describes"
+    try:
+        actor = serialization.from_state_dict(template, raw)
+    except (ValueError, TypeError, KeyError) as e:
+        raise CheckpointError(f"{where} ({type(e).__name__}: {e})") from None
+    got, want = param_shapes(actor), param_shapes(template)
+    for name in sorted(set(got) | set(want)):
+        if got.get(name) != want.get(name):
+            raise CheckpointError(
+                f"{where}: {name} has shape {got.get(name, 'missing')} in {ACTOR}, "
+                f"{want.get(name, 'missing')} in the actor its config builds"
+            )
+    return actor
+
+
 def _load(folder: str | Path):
     """``(config, learner, runs, params)`` of a run folder or an exported team (its params: the
     actor only), every parameter with a leading run axis."""
@@ -424,7 +443,7 @@ def _load(folder: str | Path):
         loaded = read_team(folder)
         trainer = learner_for(loaded.config)
         template = trainer.team.init(jax.random.key(0))["actor"]
-        actor = serialization.from_state_dict(template, loaded.actor)
+        actor = _team_actor(folder, template, loaded.actor)
         actor = jax.tree.map(lambda x: jnp.asarray(x)[None], actor)
         return loaded.config, trainer, [loaded.run], {"actor": actor}
     config, spec, meta = _read_meta(folder)

@@ -441,6 +441,27 @@ def test_a_damaged_run_record_or_one_of_other_shapes_is_refused(saved, tmp_path,
     _one_line_refusal(["eval", "--run", str(folder), "--episodes", "2"], capsys, message)
 
 
+def test_an_exported_team_with_another_teams_actor_is_refused(tmp_path, capsys):
+    """An exported team's actor.msgpack replaced by one of a team with 32 hidden units where
+    its team.json says 16: refused naming the file, the parameter and both shapes."""
+    import dataclasses
+
+    from sparsecomm.runfolder import learner_for, write_team
+
+    runs = SweepSpec(1, (0.0,), (None,)).runs()
+    for hidden in (16, 32):
+        config = dataclasses.replace(CFG, agent=dataclasses.replace(CFG.agent, hidden=hidden))
+        actor = learner_for(config).team.init(jax.random.key(0))["actor"]
+        write_team(tmp_path / str(hidden), config, runs, jax.tree.map(lambda x: x[None], actor), 0)
+    (tmp_path / "16" / "actor.msgpack").write_bytes(
+        (tmp_path / "32" / "actor.msgpack").read_bytes()
+    )
+    team = tmp_path / "16"
+    message = f"team file {team / 'actor.msgpack'} does not hold the actor its team.json describes"
+    argv = ["eval", "--run", str(team), "--episodes", "2"]
+    _one_line_refusal(argv, capsys, message, "has shape [32] in actor.msgpack, [16] in the actor")
+
+
 def test_a_save_killed_between_its_renames_leaves_the_previous_checkpoint(saved, tmp_path):
     ckpt, state = saved
     # The moment between "checkpoint -> checkpoint.old" and "checkpoint.new -> checkpoint".
