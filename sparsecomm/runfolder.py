@@ -5,7 +5,9 @@ A **run folder** is the ``--out`` of ``sparsecomm train`` or ``imitate``. Its ``
 sweep and the metadata: the learner kind (:mod:`sparsecomm.learners`), the config and the
 sweep's axes, from which :func:`runs_of` rebuilds the list of runs.
 :func:`sparsecomm.sweep.run_sweep` writes it, beside ``metrics.csv``, ``wall.csv``
-(:data:`sparsecomm.sweep.WALL_CSV`) and ``tensorboard/``;
+(:data:`sparsecomm.sweep.WALL_CSV`), ``tensorboard/`` and ``run.json``
+(:data:`sparsecomm.sweep.RECORD`: the run the folder holds, which every reader compares its
+checkpoint with, :func:`check_record`);
 :func:`sparsecomm.experiment.train` then writes :data:`RESULTS`, ``curves.png`` and
 ``team.gif``.
 
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 from pathlib import Path
 from typing import NamedTuple
 
@@ -40,9 +43,12 @@ from sparsecomm.learner import Learner, make_team
 from sparsecomm.rollout import Expert
 from sparsecomm.sharding import to_host
 from sparsecomm.sweep import (
+    RECORD,
     Run,
     SweepSpec,
     differences,
+    param_shapes,
+    record_digest,
     run_arrays,
     spec_from_meta,
     sweep_record,
@@ -214,6 +220,12 @@ def read_meta(folder: str | Path) -> tuple[RLConfig | ILConfig, SweepSpec]:
     value the config refuses is a ``CheckpointError`` naming the field and ``config.json``,
     before anything is built from it. Reading the file's bytes is :func:`checkpoint.load_meta`'s
     (a digest mismatch, an unreadable file)."""
+    config, spec, _ = _read_meta(folder)
+    return config, spec
+
+
+def _read_meta(folder: str | Path) -> tuple[RLConfig | ILConfig, SweepSpec, dict]:
+    """:func:`read_meta`, and the checkpoint's metadata itself."""
     ckpt = Path(folder) / CHECKPOINT
     meta = checkpoint.load_meta(ckpt)
     where = checkpoint.meta_file(ckpt)
@@ -231,7 +243,81 @@ def read_meta(folder: str | Path) -> tuple[RLConfig | ILConfig, SweepSpec]:
             f"checkpoint file {where} does not hold a valid run (a field missing or not the "
             "one its config reads back): " + "; ".join(diffs)
         )
-    return config, spec
+    return config, spec, meta
+
+
+def _read_record(path: Path) -> dict:
+    """A run folder's :data:`~sparsecomm.sweep.RECORD` as a :func:`sweep_record` read back
+    through its config class (so one written before a field existed reads as that field's
+    default), plus ``params``; unreadable, damaged (its SHA-256) or not a valid run is a
+    ``CheckpointError`` naming the file."""
+    try:
+        data = json.loads(path.read_bytes().decode())
+    except OSError as e:
+        reason = e.strerror or type(e).__name__
+        raise CheckpointError(f"run record {path} cannot be read ({reason})") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise CheckpointError(f"run record {path} is damaged (not valid JSON: {e})") from None
+    if not isinstance(data, dict) or data.get("record_sha256") != record_digest(data):
+        raise CheckpointError(
+            f"run record {path} is damaged: its record_sha256 is not the SHA-256 of its other "
+            "fields (edited, or not written by sparsecomm)"
+        )
+    try:
+        config = _config(data, path)
+        spec = spec_from_meta(data)
+        record = sweep_record(data["kind"], config, spec, data.get("start_from", ""))
+        shapes = data["params"]
+        if not isinstance(shapes, dict) or not all(
+            isinstance(v, list) and all(isinstance(n, int) for n in v) for v in shapes.values()
+        ):
+            raise ValueError(f"params must map each parameter to its shape, got {shapes!r}")
+    except KeyError as e:
+        raise CheckpointError(f"run record {path} has no field {e}") from None
+    except (ValueError, TypeError) as e:
+        raise CheckpointError(f"run record {path} does not hold a valid run: {e}") from None
+    return {**record, "params": shapes}
+
+
+def _shape_differences(got: dict, want: dict) -> list[str]:
+    """The first parameter whose shape in the checkpoint (``got``) is not the record's
+    (``want``), both values, and how many more differ."""
+    missing = "missing"
+    diffs = [
+        f"params {name} (checkpoint: {got.get(name, missing)}, {RECORD}: {want.get(name, missing)})"
+        for name in sorted(set(got) | set(want))
+        if got.get(name) != want.get(name)
+    ]
+    if len(diffs) > 1:
+        return [f"{diffs[0]} and {len(diffs) - 1} more parameter(s)"]
+    return diffs
+
+
+def check_record(folder: Path, meta: dict, params) -> None:
+    """Refuse a run folder whose checkpoint (its metadata ``meta``, its parameters ``params``
+    with the run axis) is not the run its :data:`~sparsecomm.sweep.RECORD` records: a checkpoint
+    swapped in from another run folder, or one edited consistently. The comparison is a
+    resume's (:func:`sparsecomm.sweep.differences`: the kind, every config field but
+    ``num_updates``, the sweep's axes, where it started from), then every parameter's shape; a
+    ``CheckpointError`` names each field that differs with both values. A folder written before
+    the record existed has none: one warning line, and its checkpoint is read as it is."""
+    path = Path(folder) / RECORD
+    if not path.exists():
+        print(
+            f"sparsecomm: warning: {folder} has no {RECORD} (written by an older sparsecomm): "
+            "its checkpoint is read without checking it against the run that trained it",
+            file=sys.stderr,
+        )
+        return
+    record = _read_record(path)
+    diffs = differences(meta, record, now=RECORD)
+    diffs += _shape_differences(param_shapes(params), record["params"])
+    if diffs:
+        raise CheckpointError(
+            f"run folder {folder} does not hold the run its {RECORD} records: its checkpoint "
+            "differs in " + "; ".join(diffs) + " (a checkpoint from another run folder, or "
+            "edited: put back this run's own checkpoint, or read the folder that trained it)"
+        )
 
 
 def runs_of(folder: str | Path) -> list[Run]:
@@ -328,6 +414,25 @@ def load_params(folder: str | Path, index: int = 0) -> dict:
     return jax.tree.map(lambda x: np.asarray(x[index]), to_host(params))
 
 
+def _team_actor(folder: Path, template, raw: dict):
+    """An exported team's actor parameters ``raw`` in the structure of ``template`` (the actor
+    its config builds); another structure or shape (an ``actor.msgpack`` of another team) is a
+    ``CheckpointError`` naming the file, the first parameter that differs and both shapes."""
+    where = f"team file {folder / ACTOR} does not hold the actor its {TEAM} describes"
+    try:
+        actor = serialization.from_state_dict(template, raw)
+    except (ValueError, TypeError, KeyError) as e:
+        raise CheckpointError(f"{where} ({type(e).__name__}: {e})") from None
+    got, want = param_shapes(actor), param_shapes(template)
+    for name in sorted(set(got) | set(want)):
+        if got.get(name) != want.get(name):
+            raise CheckpointError(
+                f"{where}: {name} has shape {got.get(name, 'missing')} in {ACTOR}, "
+                f"{want.get(name, 'missing')} in the actor its config builds"
+            )
+    return actor
+
+
 def _load(folder: str | Path):
     """``(config, learner, runs, params)`` of a run folder or an exported team (its params: the
     actor only), every parameter with a leading run axis."""
@@ -338,12 +443,13 @@ def _load(folder: str | Path):
         loaded = read_team(folder)
         trainer = learner_for(loaded.config)
         template = trainer.team.init(jax.random.key(0))["actor"]
-        actor = serialization.from_state_dict(template, loaded.actor)
+        actor = _team_actor(folder, template, loaded.actor)
         actor = jax.tree.map(lambda x: jnp.asarray(x)[None], actor)
         return loaded.config, trainer, [loaded.run], {"actor": actor}
-    config, spec = read_meta(folder)
+    config, spec, meta = _read_meta(folder)
     trainer = learner_for(config)
     runs = spec.runs()
     template = jax.vmap(trainer.init)(*run_arrays(config, runs))
     state = checkpoint.load(folder / CHECKPOINT, template)
+    check_record(folder, meta, state.params)
     return config, trainer, runs, state.params

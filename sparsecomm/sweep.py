@@ -15,6 +15,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import functools
+import hashlib
 import json
 import math
 import os
@@ -42,6 +43,13 @@ seconds the whole sweep (every run, one program) has trained when that chunk end
 and earlier invocations of a resumed sweep included (updates redone after a resume are counted
 again: they cost time). Kept apart from ``metrics.csv`` so that the metrics of two identical
 runs stay identical byte for byte."""
+RECORD = "run.json"
+"""A run folder's record of the run it holds, outside its checkpoint (a checkpoint alone cannot
+prove which run it belongs to): the :func:`sweep_record` (kind, config, sweep axes, start),
+``num_updates``, every parameter's shape (:func:`param_shapes`) and the SHA-256 of the rest
+(``record_sha256``). :func:`run_sweep` writes it as a run starts or resumes;
+:func:`sparsecomm.runfolder.check_record` compares a checkpoint with it before anything is
+evaluated."""
 METRIC_ORDER = [
     "group_reward",
     "episode_length",
@@ -365,6 +373,8 @@ def run_sweep(
     start, elapsed = 0, 0.0
     if resume and checkpoint.exists(ckpt):  # a checkpoint that is there is used, or refused
         state, start, elapsed = _resumed(ckpt, meta, state, mesh)
+    if primary:  # the run this folder holds from now on, before any checkpoint of it is saved
+        write_record(out, sweep_record(kind, config, spec, start_from), state.params, num_updates)
 
     log, prog = _open_outputs(
         out, learner, runs, kind, num_updates, start, elapsed, tensorboard, progress, primary
@@ -512,6 +522,32 @@ def sweep_record(kind: str, config, spec: SweepSpec, start_from: str = "") -> di
         "start_from": start_from,
     }
     return json.loads(json.dumps(record))
+
+
+def param_shapes(params) -> dict[str, list[int]]:
+    """Every parameter array's shape (the run axis first) by its path, e.g.
+    ``actor/params/Dense_0/kernel``: what :data:`RECORD` keeps of the networks."""
+    return {
+        jax.tree_util.keystr(path, simple=True, separator="/"): [int(n) for n in np.shape(leaf)]
+        for path, leaf in jax.tree_util.tree_leaves_with_path(params)
+    }
+
+
+def record_digest(record: dict) -> str:
+    """SHA-256 of a :data:`RECORD` (every field but ``record_sha256``, keys sorted)."""
+    rest = {k: v for k, v in record.items() if k != "record_sha256"}
+    return hashlib.sha256(json.dumps(rest, sort_keys=True).encode()).hexdigest()
+
+
+def write_record(out: Path, record: dict, params, num_updates: int) -> Path:
+    """Write a run folder's :data:`RECORD`: ``record`` (a :func:`sweep_record`), ``num_updates``,
+    the shapes of ``params`` (a run axis first) and the digest of them all; swapped in whole."""
+    data = {**record, "num_updates": num_updates, "params": param_shapes(params)}
+    data["record_sha256"] = record_digest(data)
+    path, new = Path(out) / RECORD, Path(out) / (RECORD + ".new")
+    new.write_text(json.dumps(data, indent=2))
+    os.replace(new, path)
+    return path
 
 
 def _differences(old, new, path: str = "", now: str = "now") -> list[str]:

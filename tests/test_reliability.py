@@ -2,6 +2,7 @@
 name and exit code 2, divergence stops a run with exit code 3, checkpoints that cannot lie, and
 logs that hold each update once across kills and resumes."""
 
+import functools
 import json
 import os
 import shutil
@@ -25,7 +26,7 @@ from sparsecomm.jsonfile import write_json
 from sparsecomm.rl import make_train
 from sparsecomm.runfolder import load_run
 from sparsecomm.sharding import raw_keys
-from sparsecomm.sweep import SweepSpec, run_sweep
+from sparsecomm.sweep import SweepSpec, record_digest, run_sweep
 
 TINY = ["--config.env.max-steps", "8", "--config.num-envs", "4", "--no-progress", "--no-gif"]
 TINY += ["--eval-episodes", "4", "--no-tensorboard"]
@@ -196,11 +197,26 @@ KW = dict(
 )
 
 
+@functools.cache
+def _trainer():
+    """CFG's learner, one object: sweeps of it share one compiled program."""
+    return make_train(CFG)
+
+
 @pytest.fixture(scope="module")
 def saved(tmp_path_factory):
     folder = tmp_path_factory.mktemp("ckpt") / "run"
-    sweep = run_sweep(make_train(CFG), SweepSpec(seeds=2), folder, num_updates=2, **KW)
+    sweep = run_sweep(_trainer(), SweepSpec(seeds=2), folder, num_updates=2, **KW)
     return folder / "checkpoint", sweep.state
+
+
+@pytest.fixture(scope="module")
+def other(saved, tmp_path_factory):
+    """Another run folder of the same learner and shapes (lambda 0.01, one update): only what
+    its run folder records can tell its checkpoint from the saved run's."""
+    folder = tmp_path_factory.mktemp("other") / "run"
+    run_sweep(_trainer(), SweepSpec(seeds=2, lams=(0.01,)), folder, num_updates=1, **KW)
+    return folder
 
 
 def _copy(src: Path, dst: Path) -> Path:
@@ -313,6 +329,137 @@ def test_a_default_output_that_is_a_folder_is_refused_before_any_work(saved, tmp
         (run / name).mkdir()
         _refused(argv, capsys, f"(default: {run / name}) must be a file to write")
         assert not any((run / name).iterdir())
+
+
+def _one_line_refusal(argv, capsys, *words) -> str:
+    """``main(argv)`` exits 2 with exactly one stderr line holding every one of ``words``."""
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    err = capsys.readouterr().err
+    assert e.value.code == 2, err
+    assert err.startswith("sparsecomm: error: ") and len(err.strip().splitlines()) == 1, err
+    assert all(word in err for word in words), err
+    return err
+
+
+def test_a_checkpoint_not_of_its_run_folder_is_refused_by_eval_as_by_resume(
+    saved, other, tmp_path, capsys
+):
+    """A checkpoint swapped in whole from another run folder, and one whose config.json was
+    edited consistently (its digest recomputed): each reads as a valid run, so only the run
+    folder's run.json can tell. Every reader refuses naming the field and both values, writing
+    nothing; a resume of the run the folder holds refuses the same field."""
+    run = saved[0].parent
+    swapped = tmp_path / "swapped"
+    shutil.copytree(run, swapped)
+    shutil.rmtree(swapped / "checkpoint")
+    shutil.copytree(other / "checkpoint", swapped / "checkpoint")
+    edited = _edited(run, tmp_path / "edited", lambda m: m["config"]["env"].update(max_steps=4))
+    cases = [
+        (swapped, "lams (checkpoint: [0.01], run.json: [0.0])", "lams (checkpoint: [0.01], now"),
+        (edited, "config.env.max_steps (checkpoint: 4, run.json: 8)", "max_steps (checkpoint: 4"),
+    ]
+    for folder, difference, resumed in cases:
+        files = sorted(p.relative_to(folder) for p in folder.rglob("*"))
+        refusal = f"run folder {folder} does not hold the run its run.json records"
+        readers = [
+            ["eval", "--run", str(folder), "--episodes", "2"],
+            ["render", "--run", str(folder)],
+            ["export", "--run", str(folder), "--out", str(tmp_path / "team")],
+        ]
+        for argv in readers if folder == swapped else readers[:1]:  # each reader once
+            _one_line_refusal(argv, capsys, refusal, difference)
+        assert sorted(p.relative_to(folder) for p in folder.rglob("*")) == files  # nothing written
+        assert not (tmp_path / "team").exists()
+        # The resume of the run the folder holds (TINY is CFG's task and episodes, two seeds).
+        argv = ["train", *TINY, "--seeds", "2", "--out", str(folder)]
+        _one_line_refusal(argv, capsys, f"cannot resume from {folder / 'checkpoint'}", resumed)
+
+
+def test_a_run_folder_evaluates_and_one_without_a_record_warns_once(
+    saved, tmp_path, capsys, fast_compile
+):
+    """An untouched run folder evaluates without a word on stderr; the same folder without its
+    run.json (as written before the record existed) evaluates to the same numbers, with one
+    warning line."""
+    run = tmp_path / "run"
+    shutil.copytree(saved[0].parent, run)
+    argv = ["eval", "--run", str(run), "--episodes", "2"]
+    main(argv)
+    assert capsys.readouterr().err == ""
+    first = json.loads((run / "eval.json").read_text())
+    assert len(first["runs"]) == 2
+    (run / "run.json").unlink()
+    (run / "eval.json").unlink()
+    main(argv)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        f"sparsecomm: warning: {run} has no run.json (written by an older sparsecomm): its "
+        "checkpoint is read without checking it against the run that trained it"
+    ]
+    assert json.loads((run / "eval.json").read_text()) == first
+
+
+def _rewrite_record(run: Path, edit, digest: bool = True) -> None:
+    path = run / "run.json"
+    record = json.loads(path.read_text())
+    edit(record)
+    if digest:
+        record["record_sha256"] = record_digest(record)
+    path.write_text(json.dumps(record))
+
+
+def test_a_damaged_run_record_or_one_of_other_shapes_is_refused(saved, tmp_path, capsys):
+    run = saved[0].parent
+    kernel = "actor/params/Dense_0/kernel"
+    cases = {
+        "edited, digest kept": (
+            lambda r: r["config"]["env"].update(max_steps=4),
+            False,
+            "run.json is damaged: its record_sha256 is not the SHA-256 of its other fields",
+        ),
+        "a field the config refuses": (
+            lambda r: r["config"].update(gamma=2.0),
+            True,
+            "run.json does not hold a valid run: RLConfig.gamma",
+        ),
+        "other shapes": (
+            lambda r: r["params"][kernel].__setitem__(-1, r["params"][kernel][-1] + 1),
+            True,
+            f"differs in params {kernel} (checkpoint: [2, ",
+        ),
+    }
+    for name, (edit, digest, message) in cases.items():
+        folder = tmp_path / name.replace(" ", "-").replace(",", "")
+        shutil.copytree(run, folder)
+        _rewrite_record(folder, edit, digest)
+        _one_line_refusal(["eval", "--run", str(folder), "--episodes", "2"], capsys, message)
+    folder = tmp_path / "not-json"
+    shutil.copytree(run, folder)
+    (folder / "run.json").write_text("{not json")
+    message = f"run record {folder / 'run.json'} is damaged (not valid JSON"
+    _one_line_refusal(["eval", "--run", str(folder), "--episodes", "2"], capsys, message)
+
+
+def test_an_exported_team_with_another_teams_actor_is_refused(tmp_path, capsys):
+    """An exported team's actor.msgpack replaced by one of a team with 32 hidden units where
+    its team.json says 16: refused naming the file, the parameter and both shapes."""
+    import dataclasses
+
+    from sparsecomm.runfolder import learner_for, write_team
+
+    runs = SweepSpec(1, (0.0,), (None,)).runs()
+    for hidden in (16, 32):
+        config = dataclasses.replace(CFG, agent=dataclasses.replace(CFG.agent, hidden=hidden))
+        actor = learner_for(config).team.init(jax.random.key(0))["actor"]
+        write_team(tmp_path / str(hidden), config, runs, jax.tree.map(lambda x: x[None], actor), 0)
+    (tmp_path / "16" / "actor.msgpack").write_bytes(
+        (tmp_path / "32" / "actor.msgpack").read_bytes()
+    )
+    team = tmp_path / "16"
+    message = f"team file {team / 'actor.msgpack'} does not hold the actor its team.json describes"
+    argv = ["eval", "--run", str(team), "--episodes", "2"]
+    _one_line_refusal(argv, capsys, message, "has shape [32] in actor.msgpack, [16] in the actor")
 
 
 def test_a_save_killed_between_its_renames_leaves_the_previous_checkpoint(saved, tmp_path):
