@@ -30,7 +30,8 @@ does not carry its own (``foreign``): a restarted agent acts only on the observa
 hello asked for and those after it, never on its predecessor's or on replays of them. An
 observation of step 0, or the first observation this process acts on, starts from a zero GRU
 state: a restarted agent rejoins the episode where it is, with its recurrent state reset (and,
-with ``on_drop = last`` or ``on_silence = hold``, no last messages). A copy of the observation
+with ``on_drop = last`` or ``on_silence = hold``, no last messages), and without the frames of
+the step before (sent before it said hello: each one promised is a loss). A copy of the observation
 being acted on, or of the one just acted on, is dropped (``dup``; nothing is sent back, so a
 replay is not reflected); an older one is dropped (``stale``). The agent exits on the world's
 ``bye`` (0; only a sealed ``bye`` from the world counts), after ``Deadlines.idle`` without a
@@ -363,7 +364,7 @@ class Agent:
             self.counts["bad"] += 1
             return None
         self.acting = (b, t)  # from here a copy of this observation is a duplicate
-        msgs, missing, newer = self._messages(b, t, heard, arrived)
+        msgs, missing, newer = self._messages(b, t, heard, arrived, rejoined)
         self._prune(b, t)
         out = self.step_fn(
             self.params,
@@ -387,12 +388,15 @@ class Agent:
         self.out.send(act, self.world)
         return newer
 
-    def _messages(self, b: int, t: int, heard, arrived: float):
+    def _messages(self, b: int, t: int, heard, arrived: float, rejoined: bool = False):
         """The inbox my actor reads at step ``t`` of episode ``b``: the messages of step
         ``t - 1`` rebuilt (``core.receive``) from my row of each sender's frame, waiting for the
         senders the observation's ``heard`` map promises (every sender without a map) until
         ``Deadlines.message`` after the observation ``arrived`` (monotonic seconds); zeros at
-        step 0 or on a channel that does not speak.
+        step 0 or on a channel that does not speak. A process that ``rejoined`` mid-episode
+        uses no frame of ``t - 1``: they were sent before it said hello (to its predecessor,
+        or to a port nobody held yet), so whether one reached it is an accident of timing; each
+        promised one is a loss.
 
         Returns:
           ``(msgs, missing, newer)``: the inbox, the number of promised frames still missing
@@ -409,8 +413,11 @@ class Agent:
                 expect = np.ones(self.k - 1, bool)
             else:
                 expect = heard
-            until = arrived + self.args.deadlines.message
-            got, newer = self._gather(b, t - 1, until, expect)
+            if rejoined:
+                got = [None] * (self.k - 1)
+            else:
+                until = arrived + self.args.deadlines.message
+                got, newer = self._gather(b, t - 1, until, expect)
             silent = ~expect  # the map says: nothing was sent
             ok = np.array([g is not None for g in got], bool) | silent
             missing = int((~ok).sum())

@@ -22,8 +22,10 @@ The peer's own copies are not captured again (they come from its own port). ``sp
 
 from __future__ import annotations
 
+import contextlib
 import heapq
 import json
+import os
 import select
 import socket
 import struct
@@ -50,6 +52,9 @@ OLD_PER_S = 200.0
 """Copies per second of datagrams drawn from everything captured so far (``old``)."""
 HISTORY = 100_000
 """Captured datagrams kept for ``old`` copies (the oldest are forgotten first)."""
+NICE = 19
+"""The peer's process runs at the lowest CPU priority: on one host it shares the team's cores,
+where an attacker elsewhere would not; the copies still cost each receiver its HMAC."""
 ETH_P_IP = 0x0800
 PACKET_OUTGOING = 4
 """``sll_pkttype`` of a packet this host sends: on loopback every packet is seen twice, once
@@ -223,6 +228,8 @@ def main(argv: list[str] | None = None) -> int:
     ``stop`` (or the end of stdin), then prints what it captured and sent as JSON."""
     argv = sys.argv[1:] if argv is None else argv
     seed = int(argv[0])
+    with contextlib.suppress(OSError, AttributeError):
+        os.nice(NICE)  # an attacker elsewhere would not share the team's cores
     team = []
     for text in argv[1:]:
         host, port = wire.parse_address(text, "address")

@@ -4,8 +4,9 @@ The simulator stands in for the world: it waits for every agent's hello (``Deadl
 then plays the batch's episodes one after another with the draws of ``sparsecomm eval``
 (``core.episode_draws``). At each step it sends every agent its observation, waits for every
 agent's action (``Deadlines.action`` at most; an agent that says hello meanwhile with a nonce
-never seen, restarted, is sent the observation again, once), takes action 0 (no force) for an
-agent still silent, and steps.
+never seen, restarted, is sent the observation again, once, and the wait is extended to a whole
+``Deadlines.action`` from then, so that its first action is not late), takes action 0 (no force)
+for an agent still silent, and steps.
 
 Hellos and nonces. A hello carries its process's nonce (``wire.parse_hello``). The world keeps
 every nonce it has seen; a hello with a new one makes it the agent's current nonce (the process
@@ -312,12 +313,13 @@ class World:
                 if not dg:
                     continue
                 if dg.kind == wire.HELLO:
-                    if self._hello(dg):  # a restarted agent: tell it where we are, once
-                        rec["hellos"] += 1
+                    if self._hello(dg):  # a restarted agent: tell it where we are, once,
+                        rec["hellos"] += 1  # and give it the whole deadline to act on it
                         rec["rejoins_at"].append([dg.sender, t])
                         i = dg.sender
                         packets[i] = self._observation(i, b, t, obs_np[i], maps[i])
-                        self._send(packets[dg.sender], self.agents[dg.sender])
+                        self._send(packets[i], self.agents[i])
+                        until = max(until, time.monotonic() + self.args.deadlines.action)
                     else:
                         rec["hellos_ignored"] += 1
                     continue
