@@ -78,6 +78,10 @@ def test_parse_never_raises_and_refuses_garbage_and_forgeries():
     assert AUTH.parse(None) is None and AUTH.parse(b"SC") is None
     old = b"SC\x11" + bytes(10) + b"\x01"  # version 1 (a CRC-16 where the MAC is)
     assert AUTH.parse(old + bytes(wire.HEADER_BYTES - len(old))) is None
+    # version 2 (hellos with the process id, answered every time), sealed with the secret
+    head = wire.FIELDS.pack(wire.MAGIC, 2 << 4 | wire.HELLO, 0, wire.WORLD, 0, 0)
+    payload = (1234).to_bytes(4, "big")
+    assert AUTH.parse(head + AUTH._mac(head, payload) + payload) is None
 
 
 def test_reports_and_hellos_have_a_fixed_layout_and_a_parser_that_never_raises():

@@ -4,7 +4,7 @@ Every UDP datagram of the runtime, between agents, with the world or with the la
 
     offset  bytes  field
     0       2      magic b"SC"
-    2       1      version (high 4 bits, 2) and kind (low 4 bits, :data:`KINDS`)
+    2       1      version (high 4 bits, 3) and kind (low 4 bits, :data:`KINDS`)
     3       1      sender (agent id, or 255: the world)
     4       1      recipient (agent id, or 255: the world)
     5       4      episode (unsigned, big-endian)
