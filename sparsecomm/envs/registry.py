@@ -24,6 +24,7 @@ from collections.abc import Callable
 from sparsecomm.envs.jaxmarl_reference import ReferenceConfig, SimpleReference
 from sparsecomm.envs.navigation import NavConfig
 from sparsecomm.envs.navigation_task import NavigationTask
+from sparsecomm.envs.predator_prey import PredatorPrey, PredatorPreyConfig
 from sparsecomm.envs.task import TaskConfig
 
 PLUGINS_VAR = "SPARSECOMM_TASKS"
@@ -132,3 +133,4 @@ def make(config):
 
 register("navigation", NavigationTask, NavConfig)
 register("simple_reference", SimpleReference, ReferenceConfig)
+register("predator_prey", PredatorPrey, PredatorPreyConfig)
