@@ -26,6 +26,7 @@ from sparsecomm.envs.navigation import NavConfig
 from sparsecomm.envs.navigation_task import NavigationTask
 from sparsecomm.envs.predator_prey import PredatorPrey, PredatorPreyConfig
 from sparsecomm.envs.task import TaskConfig
+from sparsecomm.envs.traffic_junction import TrafficJunction, TrafficJunctionConfig
 
 PLUGINS_VAR = "SPARSECOMM_TASKS"
 """Environment variable: comma-separated modules that register tasks when imported."""
@@ -134,3 +135,4 @@ def make(config):
 register("navigation", NavigationTask, NavConfig)
 register("simple_reference", SimpleReference, ReferenceConfig)
 register("predator_prey", PredatorPrey, PredatorPreyConfig)
+register("traffic_junction", TrafficJunction, TrafficJunctionConfig)
