@@ -120,3 +120,25 @@ def test_levels_refusals_and_the_conformance_check():
     check_task(env, jax.random.key(2), episodes=2)
     obs, state = env.reset(jax.random.key(0))
     assert not np.asarray(env.active(state)).any() and not np.asarray(obs).any()
+
+
+def test_drawn_arrivals_follow_the_rate_and_take_inactive_cars():
+    env = TrafficJunction(TrafficJunctionConfig(level="easy", arrival_rate=0.3))
+    episodes = 64
+
+    def play(key):
+        _, state = env.reset(key)
+
+        def body(state, key):
+            _, new, *_ = env.step(key, state, jax.numpy.ones(env.num_agents, int))  # all brake
+            return new, (state.alive, new.alive)
+
+        return jax.lax.scan(body, state, jax.random.split(key, env.max_steps))[1]
+
+    before, after = jax.jit(jax.vmap(play))(jax.random.split(jax.random.key(5), episodes))
+    before, after = np.asarray(before), np.asarray(after)
+    assert not (before & ~after).any()  # braking cars never leave; arrivals only add
+    added = (after & ~before).sum(-1)  # (episodes, steps): 0, 1 or 2 (two entry points)
+    free = (~before).sum(-1) >= 2  # room for both entry points' cars
+    rate = added[free].mean() / env.num_entries
+    assert abs(rate - 0.3) < 0.05, rate
