@@ -1,6 +1,7 @@
 """The tasks: the interface (``task.py``), the registry by name (``registry.py``), the paper's
-hidden-goal cooperative navigation (paper section V.A, SPEC section 4) and JaxMARL's
-``simple_reference``."""
+hidden-goal cooperative navigation (paper section V.A, SPEC section 4), JaxMARL's
+``simple_reference``, and IC3Net's Predator-Prey (``predator_prey``) and Traffic Junction
+(``traffic_junction``)."""
 
 from sparsecomm.envs.navigation import NUM_ACTIONS, NavConfig, NavigationEnv, NavState
 from sparsecomm.envs.oracle import (

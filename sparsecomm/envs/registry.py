@@ -24,7 +24,9 @@ from collections.abc import Callable
 from sparsecomm.envs.jaxmarl_reference import ReferenceConfig, SimpleReference
 from sparsecomm.envs.navigation import NavConfig
 from sparsecomm.envs.navigation_task import NavigationTask
+from sparsecomm.envs.predator_prey import PredatorPrey, PredatorPreyConfig
 from sparsecomm.envs.task import TaskConfig
+from sparsecomm.envs.traffic_junction import TrafficJunction, TrafficJunctionConfig
 
 PLUGINS_VAR = "SPARSECOMM_TASKS"
 """Environment variable: comma-separated modules that register tasks when imported."""
@@ -132,3 +134,5 @@ def make(config):
 
 register("navigation", NavigationTask, NavConfig)
 register("simple_reference", SimpleReference, ReferenceConfig)
+register("predator_prey", PredatorPrey, PredatorPreyConfig)
+register("traffic_junction", TrafficJunction, TrafficJunctionConfig)

@@ -23,6 +23,11 @@ steps). A task may also offer, each optional, read only where it is needed:
 - ``render(states, link_bits) -> list of (H, W, 3) uint8 frames`` (``states``: one episode's
   states with a leading time axis, numpy; ``link_bits``: (T, K, K) payload bits sent i -> j):
   the GIFs of ``sparsecomm train`` and ``sparsecomm render``.
+- ``active(state) -> (K,) bool``: the agents in play now, for a task whose agents come and go
+  within the fixed K (Traffic Junction's cars, :mod:`sparsecomm.envs.traffic_junction`): an
+  inactive agent's observation is what the task gives it (zeros there), its action is ignored
+  and its reward is 0. Nothing in the rollout or the learners reads it yet: they treat every
+  agent as in play.
 
 Its config is a frozen (hashable) dataclass that subclasses :class:`TaskConfig`, every field
 with a docstring (they are the command line's ``--config.env.*`` flags), checked in
@@ -86,8 +91,8 @@ def check_task(task, key: jax.Array | None = None, episodes: int = 3) -> None:
     stricter): the sizes are positive integers; ``reset`` and ``step`` give the documented
     shapes and dtypes, jitted and vmapped over ``episodes`` episodes; the same key gives the
     same episode; a random team's episodes end by ``max_steps`` and ``done`` stays True; the
-    optional ``positions``, ``expert_actions`` and ``render``, where the task has them, give
-    their shapes. Raises ``AssertionError`` naming the task and what failed."""
+    optional ``positions``, ``expert_actions``, ``active`` and ``render``, where the task has
+    them, give their shapes. Raises ``AssertionError`` naming the task and what failed."""
     key = jax.random.key(0) if key is None else key
     _expect(isinstance(task, Task), "does not have the task interface (envs/task.py)", task)
     for name in ("num_agents", "num_actions", "obs_dim", "state_dim", "max_steps"):
@@ -148,8 +153,8 @@ def check_task(task, key: jax.Array | None = None, episodes: int = 3) -> None:
 
 def _check_optional(task, one) -> None:
     """The optional parts of the interface, where ``task`` has them, on one state ``one``:
-    ``positions`` (K, 2), ``expert_actions`` (K,) valid actions, ``render`` one RGB frame per
-    state."""
+    ``positions`` (K, 2), ``expert_actions`` (K,) valid actions, ``active`` (K,) bool,
+    ``render`` one RGB frame per state."""
     k = task.num_agents
     if hasattr(task, "positions"):
         _shape(jax.jit(task.positions)(one), (k, 2), jnp.floating, "positions", task)
@@ -161,6 +166,8 @@ def _check_optional(task, one) -> None:
             f"expert_actions must be in [0, {task.num_actions})",
             task,
         )
+    if hasattr(task, "active"):
+        _shape(jax.jit(task.active)(one), (k,), jnp.bool_, "active", task)
     if hasattr(task, "render"):
         states = jax.tree.map(lambda *x: np.stack(x), one, one)
         frames = task.render(states, np.zeros((2, k, k), np.float32))
