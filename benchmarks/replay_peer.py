@@ -18,13 +18,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import os
-import platform
 import time
 from pathlib import Path
 
 import tyro
 
+from sparsecomm import provenance
 from sparsecomm.deploy.args import Deploy
 from sparsecomm.deploy.launcher import deploy
 from sparsecomm.deploy.report import read_episodes
@@ -137,8 +136,8 @@ def main(args: Args) -> dict:
     flags += f"--kills-per-episode {args.kills_per_episode} --fault-seed {args.fault_seed}"
     result = {
         "command": f"python benchmarks/replay_peer.py {flags}",
-        "machine": f"{platform.machine()}, {platform.processor() or 'cpu'}, "
-        f"{os.cpu_count()} cores, Python {platform.python_version()}",
+        "machine": provenance.hardware(),
+        "commit": provenance.git_commit(),
         "episodes": args.episodes,
         "replays": rows["replay"]["replays"],
         "different_episodes_replay_vs_clean": different(episodes["replay"], episodes["clean"]),
