@@ -443,7 +443,9 @@ def _first_state(learner: Learner, runs: list[Run], devices, start_params, start
         if start_params is not None:
             params = _start_from(state.params, start_params, start_from)
             state = state.replace(params=params, opt_state=jax.vmap(learner.tx.init)(params))
-    return mesh, steps, state
+    # init leaves some parts replicated; each run on its own device, as a chunk returns them,
+    # so that the chunk compiles once (else a second time for the state its first call returns)
+    return mesh, steps, place_runs(state, mesh)
 
 
 def _resumed(ckpt: Path, meta: dict, state, mesh):

@@ -202,6 +202,32 @@ def _devices_in_a_fresh_process(env_extra: dict) -> tuple[str, int]:
     return chosen, int(count)
 
 
+def test_a_sharded_sweep_compiles_its_chunk_once(tmp_path):
+    """Each run's state sits on its own device from the start, as a chunk returns it, so the
+    chunk compiles once (a replicated first state made it compile again for the second chunk,
+    ~30-60 s of a 10-seed sweep on 2 CPU cores)."""
+    script = textwrap.dedent(
+        f"""
+        import jax
+        from sparsecomm.configs import RLConfig
+        from sparsecomm.envs.navigation import NavConfig
+        from sparsecomm.rl import make_train
+        from sparsecomm.sweep import SweepSpec, run_sweep
+
+        assert len(jax.devices()) == 2, jax.devices()
+        tr = make_train(RLConfig(env=NavConfig(max_steps=8), num_envs=2))
+        kw = dict(num_updates=3, chunk=1, tensorboard=False, progress=False)
+        state = run_sweep(tr, SweepSpec(seeds=2), r"{tmp_path}/a", **kw).state
+        assert len({{d for x in jax.tree.leaves(state.params) for d in x.devices()}}) == 2
+        """
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("JAX_NUM_CPU_DEVICES", "XLA_FLAGS")}
+    env.update(JAX_PLATFORMS="cpu", JAX_NUM_CPU_DEVICES="2", JAX_LOG_COMPILES="1", **FAST)
+    done = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert done.stderr.count("Finished XLA compilation of jit(update_chunk)") == 1, done.stderr
+
+
 def test_use_host_cores_gives_one_cpu_device_per_core_unless_the_user_chose():
     from sparsecomm.sharding import usable_cores
 
