@@ -35,9 +35,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from sparsecomm import sharding
 from sparsecomm.configs import RLConfig
 from sparsecomm.rl import make_train
 from sparsecomm.stats import first_pass
+from sparsecomm.sweep import compiled as compiled_sweep
 
 
 def parse_learner(text: str) -> tuple[str, dict]:
@@ -95,17 +97,28 @@ def race(name: str, overrides: dict, args, max_wall: float, extra: int) -> dict:
     chunk = max(1, round(args.chunk_env_steps / steps_per_update))
     keys = jnp.stack([jax.random.key(cfg.seed + s) for s in range(args.seeds)])
     t0 = time.time()
-    state = jax.jit(jax.vmap(tr.init, (0, None)))(keys, 0.0)
-    step = jax.jit(jax.vmap(lambda s: tr.update_chunk(s, chunk)))
-    compiled = step.lower(state).compile()
+    # the seeds split over the host's CPU devices as ``sparsecomm train`` splits a sweep's runs
+    mesh = sharding.make_mesh(args.seeds, cfg.num_envs, sharding.sweep_devices(args.seeds))
+    init, steps = compiled_sweep(tr, mesh is not None)
+    zeros = jnp.zeros(args.seeds)
+    with sharding.use_mesh(mesh):
+        state = init(*sharding.place_runs((keys, zeros, zeros + jnp.nan), mesh))
+        state = sharding.place_runs(state, mesh)  # as sweep._first_state: one compile
+        jax.block_until_ready(steps(state, chunk))  # compiled by a chunk thrown away
     compile_s = time.time() - t0
-    success, length, walls = [], [], []
+    t0 = time.time()
+    success, length, walls, per_seed = [], [], [], []
     passed, stop_at = None, None
     while True:
-        state, m = compiled(state)
+        with sharding.use_mesh(mesh):
+            state, m = steps(state, chunk)
+        per_seed += np.asarray(m["success_rate"]).T.tolist()  # (chunk, seeds)
         success += np.asarray(m["success_rate"]).mean(0).tolist()
         length += np.asarray(m["episode_length"]).mean(0).tolist()
-        walls.append(time.time() - t0)
+        elapsed = time.time() - t0
+        if not walls:  # compiling alone: the warm-up less its chunk's compute
+            compile_s -= elapsed
+        walls.append(elapsed + compile_s)  # wall-clock includes compiling
         done = len(success)
         if passed is None:
             passed = first_pass(np.asarray(success), args.target, args.window)
@@ -145,6 +158,7 @@ def race(name: str, overrides: dict, args, max_wall: float, extra: int) -> dict:
         max_wall_s=max_wall,
         extra=extra,
         success=success,
+        success_per_seed=per_seed,
         episode_length=length,
         chunk_wall_s=walls,
         passed_update=None if passed is None else passed + 1,
@@ -180,6 +194,7 @@ def main():
     p.add_argument("--eval-episodes", type=int, default=500)
     p.add_argument("--out", default="race.json")
     args = p.parse_args()
+    devices = sharding.use_host_cores()  # one CPU device per core, unless the user chose
     results = dict(
         machine=dict(
             platform=platform.platform(),
@@ -187,6 +202,8 @@ def main():
             cpus=os.cpu_count(),
             jax=jax.__version__,
             device=str(jax.devices()[0]),
+            devices=len(sharding.sweep_devices(args.seeds)),
+            devices_set=devices,
         ),
         target=args.target,
         window=args.window,
