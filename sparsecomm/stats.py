@@ -173,14 +173,22 @@ def first_pass(curve, target: float, window: int) -> int | None:
     return None if len(hits) == 0 else int(hits[0] + window - 1)
 
 
-def _save(fig, legend_ax, title: str | None, out_png: str | Path) -> Path:
-    """Legend on ``legend_ax``, optional title, tight layout; write the PNG and close."""
+def _save(fig, legend_ax, title: str | None, out_png: str | Path, below: bool = False) -> Path:
+    """The legend of ``legend_ax``'s lines on it (or ``below`` the panels, where it hides no
+    curve), optional title, tight layout; write the PNG and close."""
     import matplotlib.pyplot as plt
 
-    legend_ax.legend(fontsize=8, loc="upper right")  # "best" takes minutes on long curves
+    bottom = 0.0
+    if below:
+        handles, labels = legend_ax.get_legend_handles_labels()
+        cols = max(1, min(len(labels), 3))
+        fig.legend(handles, labels, loc="lower center", ncol=cols, fontsize=8, frameon=False)
+        bottom = (0.1 + 0.2 * -(-len(labels) // cols)) / fig.get_figheight()
+    else:
+        legend_ax.legend(fontsize=8, loc="upper right")  # "best" takes minutes on long curves
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, bottom, 1, 1))
     out_png = Path(out_png)
     fig.savefig(out_png, dpi=110)
     plt.close(fig)
@@ -229,7 +237,8 @@ def curves_figure(
     for ax, metric in zip(axes, metrics, strict=False):
         for i, ((budget, lam), (steps, vals)) in enumerate(curves(data, metric).items()):
             v, colour = smooth(vals, window), f"C{i % 10}"
-            label = f"{group_label(lam, budget)} ({vals.shape[0]} seeds)"
+            seeds = vals.shape[0]
+            label = f"{group_label(lam, budget)} ({seeds} seed{'s' * (seeds > 1)})"
             ax.plot(steps, np.nanmean(v, 0), color=colour, label=label)
             if vals.shape[0] > 1:
                 ax.fill_between(steps, np.nanmin(v, 0), np.nanmax(v, 0), color=colour, alpha=0.2)
@@ -253,7 +262,6 @@ def _budget_line(ax, data, budget: float, lam: float, steps, links, colour) -> N
             links = np.nanmean(logged, 0)
         budget = budget * np.broadcast_to(links, steps.shape)
     ax.plot(steps, np.broadcast_to(budget, steps.shape), "--", color=colour, label=label)
-    ax.legend(fontsize=8, loc="upper right")
 
 
 def plot_curves(
@@ -278,9 +286,9 @@ def plot_curves(
     fig, axes = curves_figure(
         read_csv(csv_path), metrics, window, budget_metric, budget_links, ncols
     )
-    # the groups' legend beside the budget's, where bits have fallen away from its corner
+    # the groups' legend, with the budgets' lines, below the panels
     legend_ax = axes.get(alias(budget_metric or ""), next(iter(axes.values())))
-    return _save(fig, legend_ax, title, out_png)
+    return _save(fig, legend_ax, title, out_png, below=True)
 
 
 def plot_pareto(points, out_png: str | Path, title: str | None = None) -> Path:
