@@ -181,7 +181,7 @@ def _save(fig, legend_ax, title: str | None, out_png: str | Path, below: bool = 
     bottom = 0.0
     if below:
         handles, labels = legend_ax.get_legend_handles_labels()
-        cols = max(1, min(len(labels), 3))
+        cols = max(1, min(len(labels), round(fig.get_figwidth() / 2.1)))  # ~2 a panel
         fig.legend(handles, labels, loc="lower center", ncol=cols, fontsize=8, frameon=False)
         bottom = (0.1 + 0.2 * -(-len(labels) // cols)) / fig.get_figheight()
     else:
