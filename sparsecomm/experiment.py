@@ -301,9 +301,7 @@ def train(args: Train) -> dict:
     print(f"results -> {write_json(args.out / RESULTS, results)}")
     _print_groups(results["by_group"])
     if cfg.num_updates > 0:
-        metrics = CURVES if kind is not learners.IMITATION else ("loss/imitation_loss", *CURVES)
-        curves = plot_curves(args.out / "metrics.csv", args.out / "curves.png", metrics)
-        print(f"curves  -> {curves}")
+        print(f"curves  -> {write_curves(cfg, kind, args.out, trainer.env.num_agents)}")
     if args.gif and hasattr(trainer.env, "render"):
         print(f"gif     -> {render_run(trainer, actor0, 0, args.out / 'team.gif')}")
     elif args.gif:
@@ -311,13 +309,24 @@ def train(args: Train) -> dict:
     return results
 
 
-CURVES = (
-    "episode/group_reward",
-    "episode/episode_length",
-    "episode/success_rate",
-    "channel/bits_per_step",
-)
-"""The metrics of a run folder's ``curves.png`` (imitation adds ``loss/imitation_loss``)."""
+def write_curves(cfg, kind, out: Path, num_agents: int) -> Path:
+    """A run folder's ``curves.png`` from its ``metrics.csv``: success, episode length, the
+    bits per step the channel prices (``ChannelConfig.counted_metric``: wire or payload bits)
+    with each budget's line, and the share of link-steps that speak; imitation first adds its
+    loss."""
+    bits = f"channel/{cfg.channel.counted_metric}"
+    metrics = ("episode/success_rate", "episode/episode_length", bits, "channel/speaking_fraction")
+    if kind is learners.IMITATION:
+        metrics = ("loss/imitation_loss", *metrics)
+    links = num_agents * (num_agents - 1) if cfg.budget.per_link else None
+    return plot_curves(
+        out / "metrics.csv",
+        out / "curves.png",
+        metrics,
+        budget_metric=bits,
+        budget_links=links,
+        ncols=-(-len(metrics) // 2),
+    )
 
 
 def _print_groups(by_group: dict) -> None:

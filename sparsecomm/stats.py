@@ -173,18 +173,95 @@ def first_pass(curve, target: float, window: int) -> int | None:
     return None if len(hits) == 0 else int(hits[0] + window - 1)
 
 
-def _save(fig, legend_ax, title: str | None, out_png: str | Path) -> Path:
-    """Legend on ``legend_ax``, optional title, tight layout; write the PNG and close."""
+def _save(fig, legend_ax, title: str | None, out_png: str | Path, below: bool = False) -> Path:
+    """The legend of ``legend_ax``'s lines on it (or ``below`` the panels, where it hides no
+    curve), optional title, tight layout; write the PNG and close."""
     import matplotlib.pyplot as plt
 
-    legend_ax.legend(fontsize=8, loc="upper right")  # "best" takes minutes on long curves
+    bottom = 0.0
+    if below:
+        handles, labels = legend_ax.get_legend_handles_labels()
+        cols = max(1, min(len(labels), round(fig.get_figwidth() / 2.1)))  # ~2 a panel
+        fig.legend(handles, labels, loc="lower center", ncol=cols, fontsize=8, frameon=False)
+        bottom = (0.1 + 0.2 * -(-len(labels) // cols)) / fig.get_figheight()
+    else:
+        legend_ax.legend(fontsize=8, loc="upper right")  # "best" takes minutes on long curves
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, bottom, 1, 1))
     out_png = Path(out_png)
     fig.savefig(out_png, dpi=110)
     plt.close(fig)
     return out_png
+
+
+PANELS: dict[str, tuple[str, str]] = {
+    "episode/group_reward": ("group reward", "reward per episode"),
+    "episode/episode_length": ("episode length", "steps"),
+    "episode/success_rate": ("success rate", "share of episodes"),
+    "channel/bits_per_step": ("payload bits per step", "bits per step, whole team"),
+    "channel/wire_bits_per_step": ("wire bits per step", "bits per step, whole team"),
+    "channel/speaking_fraction": ("links speaking", "share of link-steps"),
+    "loss/imitation_loss": ("imitation loss", "nats per step, summed over agents"),
+}
+"""A curve panel's title and its y axis (the unit) by metric; other metrics get their name."""
+
+
+def curves_figure(
+    data: dict[str, np.ndarray],
+    metrics,
+    window: int = 10,
+    budget_metric: str | None = None,
+    budget_links: float | None = None,
+    ncols: int | None = None,
+):
+    """The figure of :func:`plot_curves` from ``data`` (:func:`read_csv`): one panel per metric
+    of ``metrics`` that ``data`` has, its y axis in the metric's unit (:data:`PANELS`), x in env
+    steps; one colour per run group. On the panel of ``budget_metric`` (the bits the budget
+    counts, ``ChannelConfig.counted_metric``), each group with a budget gets a dashed line at
+    it: the budget times the links per step for a budget per link (``budget_links``, or the
+    logged ``channel/links_per_step`` where there is one). Returns the figure and its panels by
+    metric, in ``metrics``' order."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    metrics = [alias(m) for m in metrics if alias(m) in data]
+    cols = min(ncols or len(metrics), len(metrics))
+    rows = -(-len(metrics) // cols)
+    fig, grid = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.4 * rows), squeeze=False)
+    axes = list(grid.flat)
+    for ax in axes[len(metrics) :]:
+        ax.set_visible(False)
+    for ax, metric in zip(axes, metrics, strict=False):
+        for i, ((budget, lam), (steps, vals)) in enumerate(curves(data, metric).items()):
+            v, colour = smooth(vals, window), f"C{i % 10}"
+            seeds = vals.shape[0]
+            label = f"{group_label(lam, budget)} ({seeds} seed{'s' * (seeds > 1)})"
+            ax.plot(steps, np.nanmean(v, 0), color=colour, label=label)
+            if vals.shape[0] > 1:
+                ax.fill_between(steps, np.nanmin(v, 0), np.nanmax(v, 0), color=colour, alpha=0.2)
+            if budget_metric and metric == alias(budget_metric) and not np.isnan(budget):
+                _budget_line(ax, data, budget, lam, steps, budget_links, colour)
+        title, unit = PANELS.get(metric, (metric.split("/")[-1].replace("_", " "), ""))
+        ax.set(title=title, xlabel="env steps", ylabel=unit)
+        ax.grid(alpha=0.3)
+    return fig, dict(zip(metrics, axes, strict=False))
+
+
+def _budget_line(ax, data, budget: float, lam: float, steps, links, colour) -> None:
+    """A group's budget on the panel of the bits it counts: flat for the team's count; for a
+    budget per link (``links`` given), the budget times the links per step (the logged ones
+    where the run logs them)."""
+    label = f"budget {budget:g}"
+    if links is not None:
+        label = f"budget {budget:g} per link x links"
+        if "channel/links_per_step" in data:
+            logged = curves(data, "channel/links_per_step")[(budget, lam)][1]
+            links = np.nanmean(logged, 0)
+        budget = budget * np.broadcast_to(links, steps.shape)
+    ax.plot(steps, np.broadcast_to(budget, steps.shape), "--", color=colour, label=label)
 
 
 def plot_curves(
@@ -198,29 +275,20 @@ def plot_curves(
     ),
     window: int = 10,
     title: str | None = None,
+    budget_metric: str | None = None,
+    budget_links: float | None = None,
+    ncols: int | None = None,
 ) -> Path:
     """Learning curves (mean over seeds, shaded min-max band) per lambda or budget, one panel
     per metric (written names; flat keys are read through
-    :func:`~sparsecomm.metric_names.alias`)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    data = read_csv(csv_path)
-    metrics = [alias(m) for m in metrics if alias(m) in data]
-    fig, axes = plt.subplots(1, len(metrics), figsize=(4.2 * len(metrics), 3.4), squeeze=False)
-    for ax, metric in zip(axes[0], metrics, strict=True):
-        for (budget, lam), (steps, vals) in curves(data, metric).items():
-            v = smooth(vals, window)
-            mean = np.nanmean(v, 0)
-            ax.plot(steps, mean, label=f"{group_label(lam, budget)} ({vals.shape[0]} seeds)")
-            if vals.shape[0] > 1:
-                ax.fill_between(steps, np.nanmin(v, 0), np.nanmax(v, 0), alpha=0.2)
-        ax.set_xlabel("env steps")
-        ax.set_title(metric.split("/")[-1].replace("_", " "))
-        ax.grid(alpha=0.3)
-    return _save(fig, axes[0][0], title, out_png)
+    :func:`~sparsecomm.metric_names.alias`), each budget drawn on the panel of the bits it
+    counts (:func:`curves_figure`), ``ncols`` panels a row (default: one row)."""
+    fig, axes = curves_figure(
+        read_csv(csv_path), metrics, window, budget_metric, budget_links, ncols
+    )
+    # the groups' legend, with the budgets' lines, below the panels
+    legend_ax = axes.get(alias(budget_metric or ""), next(iter(axes.values())))
+    return _save(fig, legend_ax, title, out_png, below=True)
 
 
 def plot_pareto(points, out_png: str | Path, title: str | None = None) -> Path:
