@@ -7,7 +7,7 @@ parameters at initialisation: the key that command's run 0 draws them from) play
 episodes and scored (R^2) on the other half. A recipient whose read-out is near 0 starts with
 messages that say nothing about what it needs; a seed whose recipients all read about as
 much as other seeds' did not stall for lack of information at the start (docs/paper-task.md,
-"Why a seed stalls").
+"Why a seed stalls, and a learner that leaves no seed behind").
 
     python experiments/message_readout.py --preset paper_fast --seeds 7000 7001 7002 7003 7004
 """
