@@ -198,6 +198,16 @@ def place_runs(tree, mesh: Mesh | None):
     return jax.tree.map(put, tree)
 
 
+def runs_on_devices(tree, mesh: Mesh | None):
+    """``tree`` (runs on axis 0 of every leaf, global arrays) laid out as :func:`place_runs`
+    lays it, whatever its layout now, through a jitted identity (so it works on several hosts
+    too). A compiled chunk returns its state laid out so; a state laid out otherwise (``init``
+    returns some parts replicated) would make the chunk compile a second time."""
+    if mesh is None:
+        return tree
+    return jax.jit(lambda t: t, out_shardings=NamedSharding(mesh, PartitionSpec(RUNS)))(tree)
+
+
 def to_host(tree):
     """Every leaf as a full numpy array on this process (PRNG keys as their raw data).
 

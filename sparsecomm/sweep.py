@@ -34,7 +34,15 @@ from sparsecomm.configs import to_dict, upgrade
 from sparsecomm.errors import CheckpointError, DivergedError, RunError
 from sparsecomm.learner import Learner
 from sparsecomm.metric_names import written
-from sparsecomm.sharding import RUNS, is_primary, make_mesh, place_runs, to_host, use_mesh
+from sparsecomm.sharding import (
+    RUNS,
+    is_primary,
+    make_mesh,
+    place_runs,
+    runs_on_devices,
+    to_host,
+    use_mesh,
+)
 
 FIRST_COLUMNS = ["seed", "lam", "budget", "update", "env_steps", "episodes"]
 WALL_CSV = "wall.csv"
@@ -443,9 +451,9 @@ def _first_state(learner: Learner, runs: list[Run], devices, start_params, start
         if start_params is not None:
             params = _start_from(state.params, start_params, start_from)
             state = state.replace(params=params, opt_state=jax.vmap(learner.tx.init)(params))
-    # init leaves some parts replicated; each run on its own device, as a chunk returns them,
+    # init leaves some parts replicated: each run on its own device, as a chunk returns them,
     # so that the chunk compiles once (else a second time for the state its first call returns)
-    return mesh, steps, place_runs(state, mesh)
+    return mesh, steps, runs_on_devices(state, mesh)
 
 
 def _resumed(ckpt: Path, meta: dict, state, mesh):
