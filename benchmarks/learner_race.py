@@ -103,7 +103,7 @@ def race(name: str, overrides: dict, args, max_wall: float, extra: int) -> dict:
     zeros = jnp.zeros(args.seeds)
     with sharding.use_mesh(mesh):
         state = init(*sharding.place_runs((keys, zeros, zeros + jnp.nan), mesh))
-        state = sharding.place_runs(state, mesh)  # as sweep._first_state: one compile
+        state = sharding.runs_on_devices(state, mesh)  # as sweep._first_state: one compile
         jax.block_until_ready(steps(state, chunk))  # compiled by a chunk thrown away
     compile_s = time.time() - t0
     t0 = time.time()
