@@ -21,36 +21,33 @@ which the mean of the seeds' training success, averaged the same way, first pass
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import platform
 from pathlib import Path
 
 import numpy as np
 
-from sparsecomm.stats import first_pass
+from sparsecomm.stats import first_pass, read_csv
 
 
 def seed_curves(folder: Path) -> np.ndarray:
     """(updates, seeds) training success per update from ``metrics.csv`` (one lambda, one
     budget: a seed sweep)."""
-    rows = list(csv.DictReader(open(folder / "metrics.csv")))
-    seeds = sorted({int(r["seed"]) for r in rows})
-    updates = sorted({int(r["update"]) for r in rows})
+    data = read_csv(folder / "metrics.csv")
+    seeds, seed_index = np.unique(data["seed"].astype(int), return_inverse=True)
+    updates, update_index = np.unique(data["update"].astype(int), return_inverse=True)
     curves = np.full((len(updates), len(seeds)), np.nan)
-    for r in rows:
-        curves[updates.index(int(r["update"])), seeds.index(int(r["seed"]))] = float(
-            r["episode/success_rate"]
-        )
+    curves[update_index, seed_index] = data["episode/success_rate"]
     return curves
 
 
 def wall_at(folder: Path, update: int) -> float:
     """The wall-clock at the end of the chunk holding 1-based ``update`` (``wall.csv``)."""
-    for r in csv.DictReader(open(folder / "wall.csv")):
-        if int(r["update"]) >= update:
-            return float(r["wall_s"])
-    raise ValueError(f"{folder}/wall.csv ends before update {update}")
+    wall = read_csv(folder / "wall.csv")
+    later = np.nonzero(wall["update"] >= update)[0]
+    if len(later) == 0:
+        raise ValueError(f"{folder}/wall.csv ends before update {update}")
+    return float(wall["wall_s"][later[0]])
 
 
 def table(folder: Path, window: int) -> dict:
